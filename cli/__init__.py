@@ -1,0 +1,1 @@
+"""Command-line interface: one click command module per stage."""

@@ -1,0 +1,200 @@
+"""Typed measurement and estimate sets (the in-memory side of the files in docs/formats.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["MeasurementSet", "EstimateSet"]
+
+
+def _ro(a, dtype=float):
+    a = np.array(a, dtype=dtype)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class MeasurementSet:
+    """Tracked 3-D surface points per frame.
+
+    Attributes
+    ----------
+    times : ndarray (K,)                 seconds from the first frame, strictly increasing
+    point_ids : ndarray (P,) int          identifiers that survive filtering
+    positions : ndarray (K, P, 3)         m, NaN where a point is not seen
+    covariances : ndarray (K, P, 3, 3)    m^2 (NaN where not seen)
+    reference : ndarray (P, 3)            reference (undeformed) position of each point, m
+    inputs : ndarray (K, n_u)             known inputs at the frame times
+    input_names, input_units : tuple of str
+    frame : str                           'patch' (model frame) or 'rig'
+    views : ndarray (K, P) int            cameras that saw each observation (0 if simulated)
+    reprojection_rms : ndarray (K, P)     px (NaN if simulated)
+    meta : dict                           free-form provenance (producer, seed, model hash, ...)
+    """
+
+    times: np.ndarray
+    point_ids: np.ndarray
+    positions: np.ndarray
+    covariances: np.ndarray
+    reference: np.ndarray
+    inputs: np.ndarray
+    input_names: tuple = ()
+    input_units: tuple = ()
+    frame: str = "patch"
+    views: np.ndarray | None = None
+    reprojection_rms: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        t = _ro(self.times).reshape(-1)
+        K = t.size
+        if K < 1:
+            raise ValueError("times: at least one frame expected")
+        if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+            raise ValueError("times: finite and strictly increasing values expected")
+        pos = _ro(self.positions)
+        if pos.ndim != 3 or pos.shape[0] != K or pos.shape[2] != 3:
+            raise ValueError(f"positions: shape ({K}, P, 3) expected, got {pos.shape}")
+        P = pos.shape[1]
+        if np.isinf(pos).any():
+            raise ValueError("positions: infinite values (use NaN for points not seen)")
+        cov = _ro(self.covariances)
+        if cov.shape != (K, P, 3, 3):
+            raise ValueError(f"covariances: shape ({K}, {P}, 3, 3) expected, got {cov.shape}")
+        seen = np.isfinite(pos).all(axis=2)
+        partial = np.isfinite(pos).any(axis=2) & ~seen
+        if partial.any():
+            k, p = np.argwhere(partial)[0]
+            raise ValueError(f"positions: frame {k}, point {p} has some but not all coordinates NaN")
+        cs = cov[seen]
+        if cs.size:
+            if not np.isfinite(cs).all():
+                raise ValueError("covariances: non-finite covariance for an observed point")
+            if np.abs(cs - np.swapaxes(cs, -1, -2)).max() > 1e-9 * np.abs(cs).max():
+                raise ValueError("covariances: not symmetric")
+            if (np.linalg.eigvalsh(cs).min(axis=-1) <= 0).any():
+                raise ValueError("covariances: not positive definite for some observation")
+        ref = _ro(self.reference)
+        if ref.shape != (P, 3) or not np.isfinite(ref).all():
+            raise ValueError(f"reference: finite array of shape ({P}, 3) expected, got {ref.shape}")
+        ids = _ro(self.point_ids, np.int64).reshape(-1)
+        if ids.size != P or np.unique(ids).size != P:
+            raise ValueError(f"point_ids: {P} unique identifiers expected")
+        u = _ro(self.inputs)
+        if u.ndim == 1:
+            u = _ro(u.reshape(K, -1))
+        if u.shape[0] != K or not np.isfinite(u).all():
+            raise ValueError(f"inputs: finite array of shape ({K}, n_u) expected, got {u.shape}")
+        names = tuple(self.input_names)
+        units = tuple(self.input_units) or tuple("" for _ in names)
+        if len(names) != u.shape[1] or len(units) != len(names):
+            raise ValueError(f"input_names/input_units: {u.shape[1]} names and units expected")
+        if self.frame not in ("patch", "rig"):
+            raise ValueError(f"frame: 'patch' or 'rig' expected, got {self.frame!r}")
+        views = np.zeros((K, P), np.int64) if self.views is None else np.array(self.views, np.int64)
+        rms = np.full((K, P), np.nan) if self.reprojection_rms is None else np.array(self.reprojection_rms, float)
+        if views.shape != (K, P) or rms.shape != (K, P):
+            raise ValueError(f"views/reprojection_rms: shape ({K}, {P}) expected")
+        for name, val in (("times", t), ("positions", pos), ("covariances", cov), ("reference", ref),
+                          ("point_ids", ids), ("inputs", u), ("views", _ro(views, np.int64)),
+                          ("reprojection_rms", _ro(rms))):
+            object.__setattr__(self, name, val)
+        object.__setattr__(self, "input_names", names)
+        object.__setattr__(self, "input_units", units)
+
+    @property
+    def n_frames(self) -> int:
+        return self.times.size
+
+    @property
+    def n_points(self) -> int:
+        return self.point_ids.size
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(K, P) bool: point observed in frame."""
+        return np.isfinite(self.positions).all(axis=2)
+
+    def input_columns(self, names) -> np.ndarray:
+        """Inputs (K, len(names)) in the order of ``names``; ValueError naming a missing one."""
+        idx = []
+        for n in names:
+            if n not in self.input_names:
+                raise ValueError(f"inputs: the model needs input {n!r}, the file has {list(self.input_names)}")
+            idx.append(self.input_names.index(n))
+        return self.inputs[:, idx]
+
+    def translation(self) -> np.ndarray:
+        """Known rigid translation (K, 3) from inputs ``respiration_x/y/z`` (zeros if absent)."""
+        names = ("respiration_x", "respiration_y", "respiration_z")
+        if all(n in self.input_names for n in names):
+            return self.input_columns(names)
+        return np.zeros((self.n_frames, 3))
+
+
+@dataclass(frozen=True)
+class EstimateSet:
+    """Per-step output of an estimator (one file per estimator run).
+
+    Attributes
+    ----------
+    estimator : str
+    times : (K,)
+    point_ids : (P,)
+    state_mean : (K, n_x)                 kinematic state posterior mean
+    state_var : (K, n_x)                  its covariance diagonal
+    theta : (K, 5)                        parameter posterior mean (physical units)
+    theta_std : (K, 5)                    parameter posterior std (0 for fixed parameters)
+    predictions : (K, P, 3)               one-step predicted position of every point (prior at step 0)
+    innovations : (K, P, 3)               measurement minus prediction (NaN where not seen)
+    nis : (K,)                            normalised innovation squared (NaN if nothing seen)
+    nis_dof : (K,) int                    its degrees of freedom
+    truncation_events : (K,) int
+    step_time : (K,)                      wall time per step, s
+    completed_steps : int                 steps completed (== K unless the run stopped)
+    meta : dict
+    """
+
+    estimator: str
+    times: np.ndarray
+    point_ids: np.ndarray
+    state_mean: np.ndarray
+    state_var: np.ndarray
+    theta: np.ndarray
+    theta_std: np.ndarray
+    predictions: np.ndarray
+    innovations: np.ndarray
+    nis: np.ndarray
+    nis_dof: np.ndarray
+    truncation_events: np.ndarray
+    step_time: np.ndarray
+    completed_steps: int
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        K = np.asarray(self.times).size
+        P = np.asarray(self.point_ids).size
+        expect = {
+            "state_mean": (K, None), "state_var": (K, None), "theta": (K, 5), "theta_std": (K, 5),
+            "predictions": (K, P, 3), "innovations": (K, P, 3), "nis": (K,), "nis_dof": (K,),
+            "truncation_events": (K,), "step_time": (K,),
+        }
+        for name, shape in expect.items():
+            a = np.asarray(getattr(self, name))
+            if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
+                raise ValueError(f"{name}: shape {shape} expected, got {a.shape}")
+        if not 0 <= self.completed_steps <= K:
+            raise ValueError(f"completed_steps: 0..{K} expected, got {self.completed_steps}")
+
+    @property
+    def complete(self) -> bool:
+        return self.completed_steps == np.asarray(self.times).size
+
+    def prediction_rmse(self) -> float:
+        """RMS over points, coordinates-per-point norm and steps k >= 1 of the one-step prediction error (m)."""
+        e = np.asarray(self.innovations)[1 : self.completed_steps]
+        d2 = np.sum(e**2, axis=-1)
+        d2 = d2[np.isfinite(d2)]
+        return float(np.sqrt(d2.mean())) if d2.size else float("nan")
