@@ -70,8 +70,11 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
             th[3] = base[3] * (1.0 + stiffness_cycle * h)
             return th
 
+    from threadpoolctl import threadpool_limits
+
     try:
-        sim = run(m, duration, rng, theta=theta, substeps=substeps, missing_fraction=missing)
+        with threadpool_limits(1):
+            sim = run(m, duration, rng, theta=theta, substeps=substeps, missing_fraction=missing)
     except ValueError as exc:
         raise BadInput(str(exc)) from None
     meta = {"producer": "heartcv model simulate", "seed": seed, "model": str(model_file),

@@ -122,7 +122,7 @@ def _active_load(basis, mesh: PatchMesh) -> np.ndarray:
     from skfem import LinearForm, asm
 
     geom = mesh.geometry
-    x = np.moveaxis(np.asarray(basis.global_coordinates().value), 0, -1)  # (nel, nqp, 3)
+    x = np.moveaxis(np.asarray(basis.global_coordinates()), 0, -1)  # (nel, nqp, 3)
     s, t, d = np.moveaxis(geom.from_patch(x), -1, 0)
     h = np.deg2rad(-60.0 + 120.0 * np.clip(d / geom.thickness, 0.0, 1.0))
     eps = 1e-6

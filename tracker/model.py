@@ -129,13 +129,7 @@ class PatchModel:
         W = self._accel_projection()
         Qc = np.zeros((2 * r, 2 * r))
         Qc[r:, r:] = nz.accel_psd * (W @ W.T)
-        Z = np.zeros((4 * r, 4 * r))
-        Z[: 2 * r, : 2 * r] = -Fc
-        Z[: 2 * r, 2 * r :] = Qc
-        Z[2 * r :, 2 * r :] = Fc.T
-        E = sla.expm(Z * dt)
-        Q = E[2 * r :, 2 * r :].T @ E[: 2 * r, 2 * r :]
-        return 0.5 * (Q + Q.T)
+        return integrated_noise(Fc, Qc, dt)
 
     def _accel_projection(self) -> np.ndarray:
         if self.basis is None:
@@ -269,6 +263,29 @@ class PatchModel:
         }
 
 
+def integrated_noise(Fc, Qc, dt) -> np.ndarray:
+    """``Q = int_0^dt e^{Fc s} Qc e^{Fc^T s} ds`` (Van Loan), stable for stiff ``Fc``.
+
+    Van Loan's block exponential contains ``e^{-Fc h}``, which overflows for stiff damped modes, so it is
+    evaluated on ``h = dt / 2^k`` with ``||Fc h|| <= 1`` and doubled back: ``Q(2h) = Q(h) + A(h) Q(h) A(h)^T``,
+    a sum of PSD terms.
+    """
+    n = Fc.shape[0]
+    k = max(0, int(np.ceil(np.log2(max(np.linalg.norm(Fc, 1) * dt, 1.0)))))
+    h = dt / 2**k
+    Z = np.zeros((2 * n, 2 * n))
+    Z[:n, :n] = -Fc
+    Z[:n, n:] = Qc
+    Z[n:, n:] = Fc.T
+    E = sla.expm(Z * h)
+    A = E[n:, n:].T
+    Q = A @ E[:n, n:]
+    for _ in range(k):
+        Q = Q + A @ Q @ A.T
+        A = A @ A
+    return 0.5 * (Q + Q.T)
+
+
 def _check_theta(theta) -> np.ndarray:
     th = np.asarray(theta, float).reshape(-1)
     if th.shape != (5,):
@@ -304,10 +321,12 @@ def _ritz_basis(fe, free, loads, theta, modes, static_nu, volume):
         lu = spla.splu((lam * Kl + mu * Km).tocsc())
         cols.append(lu.solve(loads) if loads.size else np.zeros((K0.shape[0], 0)))
     V = np.hstack(cols)
-    G = V.T @ (M0 @ V)
-    w, U = np.linalg.eigh(0.5 * (G + G.T))
-    keep = w > 1e-12 * w.max()  # drop numerically dependent static responses
-    V = V @ (U[:, keep] / np.sqrt(w[keep]))
+    V = V / np.sqrt(np.einsum("ij,ij->j", V, M0 @ V))
+    for tol in (1e-12, 0.0):  # M0-orthonormalise twice ("twice is enough"); drop dependent statics once
+        G = V.T @ (M0 @ V)
+        w, U = np.linalg.eigh(0.5 * (G + G.T))
+        keep = w > tol * w.max()
+        V = V @ (U[:, keep] / np.sqrt(w[keep]))
     return V * np.sqrt(volume)
 
 

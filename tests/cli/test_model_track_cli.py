@@ -1,0 +1,148 @@
+"""CLI: heartcv model info / model simulate / track (CliRunner, exit codes, artifacts read back)."""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from cli.main import main
+from tests.conftest import SAMPLES
+from tracker.io import read_estimates, read_measurements, read_truth
+
+PAPER = str(SAMPLES / "paper_patch.yaml")
+
+
+@pytest.fixture
+def runner():
+    return CliRunner()
+
+
+def _json(result):
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def test_model_info_paper(runner):
+    out = _json(runner.invoke(main, ["model", "info", PAPER, "--json"]))
+    assert (out["free_nodes"], out["state_dim"], out["observed_rows"]) == (28, 168, 42)
+    assert out["nodes"] == 72 and len(out["frequencies_hz"]) == 5
+    assert out["frequencies_hz"] == sorted(out["frequencies_hz"])
+
+
+def test_model_info_myocardium_is_reduced(runner):
+    out = _json(runner.invoke(main, ["model", "info", str(SAMPLES / "myocardium.yaml"), "--json"]))
+    assert out["reduced"] and out["free_nodes"] == 2204 and out["state_dim"] == 2 * out["basis_size"]
+    assert out["state_dim"] <= 30
+
+
+def test_simulate_then_track(runner, tmp_path):
+    meas, truth, est = (str(tmp_path / n) for n in ("m.npz", "t.npz", "e.npz"))
+    sim = _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "2", "--seed", "4", "-o", meas,
+                                     "--truth", truth, "--json"]))
+    assert sim["frames"] == 61 and sim["points"] == 14
+    m = read_measurements(meas)
+    t, meta = read_truth(truth)
+    assert m.positions.shape == (61, 14, 3) and t["positions"].shape == (61, 14, 3)
+    assert meta["seed"] == 4 and meta["format"] == "heartcv.truth"
+    # noise level: measurements minus truth have the configured std
+    assert np.std(m.positions - t["positions"]) == pytest.approx(1e-4, rel=0.1)
+    out = _json(runner.invoke(main, ["track", meas, "--model", PAPER, "--estimator", "kf", "-o", est, "--json"]))
+    assert out["steps"] == 61
+    for key in ("nis_mean", "prediction_rmse_m", "step_ms_median"):
+        assert np.isfinite(out[key])
+    e = read_estimates(est)
+    assert e.complete and e.estimator == "kf"
+    assert e.prediction_rmse() == pytest.approx(out["prediction_rmse_m"])
+    # same seed -> identical file contents
+    meas2 = str(tmp_path / "m2.npz")
+    _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "2", "--seed", "4", "-o", meas2, "--json"]))
+    np.testing.assert_array_equal(read_measurements(meas2).positions, m.positions)
+
+
+def test_simulate_with_stiffness_cycle_and_missing(runner, tmp_path):
+    meas, truth = str(tmp_path / "m.npz"), str(tmp_path / "t.npz")
+    _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "1", "--stiffness-cycle", "1.0",
+                               "--missing", "0.2", "-o", meas, "--truth", truth, "--json"]))
+    t, _ = read_truth(truth)
+    E = t["theta"][:, 3]
+    assert E.min() == pytest.approx(150e3) and E.max() > 1.8 * 150e3
+    assert np.isnan(read_measurements(meas).positions).any()
+    est = str(tmp_path / "e.npz")
+    out = _json(runner.invoke(main, ["track", meas, "--model", PAPER, "-o", est, "--json"]))
+    assert out["steps"] == 31
+
+
+def _write_model(tmp_path, edit):
+    d = yaml.safe_load(Path(PAPER).read_text())
+    edit(d)
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return str(p)
+
+
+@pytest.mark.parametrize("edit,field", [
+    (lambda d: d["parameters"].update(nu=0.5), "parameters.nu"),
+    (lambda d: d["geometry"].update(thickness=-0.01), "geometry.thickness"),
+    (lambda d: d.update(colour="red"), "colour"),
+    (lambda d: d["parameters"].pop("E") and d["parameters"].update(Young=1.0), "parameters.Young"),
+])
+def test_bad_model_file_exits_2_naming_the_field(runner, tmp_path, edit, field):
+    bad = _write_model(tmp_path, edit)
+    out = tmp_path / "m.npz"
+    for args in (["model", "info", bad], ["model", "simulate", bad, "--duration", "1", "-o", str(out)]):
+        res = runner.invoke(main, args)
+        assert res.exit_code == 2
+        assert field in res.stderr
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["bad.yaml"]
+
+
+def test_truncated_measurement_file_exits_2_and_writes_nothing(runner, tmp_path):
+    meas = tmp_path / "m.npz"
+    _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "1", "-o", str(meas), "--json"]))
+    data = meas.read_bytes()
+    meas.write_bytes(data[: len(data) // 2])
+    before = meas.read_bytes()
+    est = tmp_path / "e.npz"
+    res = runner.invoke(main, ["track", str(meas), "--model", PAPER, "-o", str(est)])
+    assert res.exit_code == 2
+    assert "m.npz" in res.stderr and "truncated or corrupt" in res.stderr
+    assert not est.exists() and meas.read_bytes() == before
+    assert sorted(os.listdir(tmp_path)) == ["m.npz"]
+
+
+def test_measurements_off_the_patch_exit_2(runner, tmp_path):
+    from tracker.io import write_measurements
+    from tracker.measurements import MeasurementSet
+
+    meas = tmp_path / "m.npz"
+    _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "1", "-o", str(meas), "--json"]))
+    m = read_measurements(meas)
+    mm = MeasurementSet(m.times, m.point_ids, m.positions * 1000, m.covariances * 1e6, m.reference * 1000,
+                        m.inputs, m.input_names, m.input_units)  # millimetres by mistake
+    write_measurements(meas, mm)
+    res = runner.invoke(main, ["track", str(meas), "--model", PAPER, "-o", str(tmp_path / "e.npz")])
+    assert res.exit_code == 2 and "none of the" in res.stderr
+    assert not (tmp_path / "e.npz").exists()
+
+
+def test_missing_input_column_exits_2(runner, tmp_path):
+    from tracker.io import write_measurements
+    from tracker.measurements import MeasurementSet
+
+    meas = tmp_path / "m.npz"
+    _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "1", "-o", str(meas), "--json"]))
+    m = read_measurements(meas)
+    write_measurements(meas, MeasurementSet(m.times, m.point_ids, m.positions, m.covariances, m.reference,
+                                            m.inputs[:, 1:], m.input_names[1:], m.input_units[1:]))
+    res = runner.invoke(main, ["track", str(meas), "--model", PAPER, "-o", str(tmp_path / "e.npz")])
+    assert res.exit_code == 2 and "pressure" in res.stderr
+
+
+def test_help_is_fast_and_lists_commands(runner):
+    res = runner.invoke(main, ["--help"])
+    assert res.exit_code == 0 and "model" in res.output and "track" in res.output

@@ -1,0 +1,41 @@
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_sequences"
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+def load_yaml(name):
+    return yaml.safe_load((SAMPLES / name).read_text())
+
+
+@pytest.fixture(scope="session")
+def paper_dict():
+    return load_yaml("paper_patch.yaml")
+
+
+@pytest.fixture(scope="session")
+def paper_model(paper_dict):
+    from tracker.config import model_config_from_dict
+    from tracker.model import build_model
+
+    return build_model(model_config_from_dict(copy.deepcopy(paper_dict)))
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def single_threaded_blas():
+    """Small matrices: one BLAS thread is faster and keeps timings stable on 2 cores."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
