@@ -33,8 +33,8 @@ class LazyGroup(click.Group):
 def main(ctx, verbose, quiet):
     """heartcv: physics-based tracking of beating-heart surface motion.
 
-    Stages: target, render, calibrate, measure, fit, track, report, simulate; `model` inspects and
-    simulates the physics model. Logs and progress go to stderr; --json summaries to stdout.
+    Available: `model info`, `model simulate`, `track`. Planned stages: target, render, calibrate,
+    measure, fit, report, simulate (Monte Carlo). Logs go to stderr; --json summaries to stdout.
     """
     verbosity = verbose - quiet
     logging.basicConfig(level=max(10, 30 - 10 * verbosity), format="%(levelname)s %(name)s: %(message)s",

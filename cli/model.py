@@ -6,7 +6,7 @@ import logging
 
 import click
 
-from .options import BadInput, emit_json, json_opt, load_model, seed_opt
+from .options import BadInput, StageFailed, emit_json, json_opt, load_model, seed_opt
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +75,8 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
     try:
         with threadpool_limits(1):
             sim = run(m, duration, rng, theta=theta, substeps=substeps, missing_fraction=missing)
+    except FloatingPointError as exc:
+        raise StageFailed(f"{model_file}: {exc}; nothing written") from None
     except ValueError as exc:
         raise BadInput(str(exc)) from None
     meta = {"producer": "heartcv model simulate", "seed": seed, "model": str(model_file),

@@ -39,6 +39,8 @@ def track(measurements, model_file, estimator, joseph, output, as_json):
     try:
         with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (spec/estimator §7.5)
             est = run_kalman(m, meas, joseph=joseph)
+    except np.linalg.LinAlgError as exc:
+        raise StageFailed(f"{estimator}: numerical failure ({exc}); no estimate file written") from None
     except EstimationDiverged as exc:
         raise StageFailed(f"{estimator} diverged at step {exc.step}; no estimate file written") from None
     except ValueError as exc:
@@ -54,7 +56,7 @@ def track(measurements, model_file, estimator, joseph, output, as_json):
         "steps": int(est.completed_steps),
         "nis_mean": float(np.mean(est.nis[seen])) if seen.any() else None,
         "nis_dof_mean": float(np.mean(est.nis_dof[seen])) if seen.any() else None,
-        "prediction_rmse_m": est.prediction_rmse(),
+        "prediction_rmse_m": est.prediction_rmse() if np.isfinite(est.prediction_rmse()) else None,
         "step_ms_median": float(np.median(est.step_time) * 1e3),
         "output": output,
     }

@@ -89,6 +89,11 @@ class ModelConfig:
         try:
             return ParameterSpace(self.theta, est.estimate, lo, up, np.array([e1, e2]))
         except ValueError as exc:
+            head, _, msg = str(exc).partition(": ")
+            if head in NAMES:  # a parameter value outside its box
+                raise ConfigError(f"parameters.{head}", f"{msg} (see estimation.bounds.{head})") from None
+            if head.startswith("bounds."):
+                raise ConfigError(f"estimation.{head}", msg) from None
             raise ConfigError("estimation", str(exc)) from None
 
     @property
@@ -184,8 +189,9 @@ def _geometry(sec: _Section) -> PatchGeometry:
     sec.done()
     try:
         return PatchGeometry(length, width, thick, r1, r2, tuple(grid))
-    except ValueError as exc:
-        raise ConfigError(sec.path, str(exc)) from None
+    except ValueError as exc:  # PatchGeometry's messages already name the field
+        field_name, _, msg = str(exc).partition(": ")
+        raise ConfigError(field_name if msg else sec.path, msg or str(exc)) from None
 
 
 def _theta(sec: _Section) -> np.ndarray:
