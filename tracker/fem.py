@@ -55,10 +55,16 @@ class FEMatrices:
     volume: float
 
 
-def _unit(b: int, a: int) -> sp.csr_matrix:
-    e = np.zeros((3, 3))
-    e[b, a] = 1.0
-    return sp.csr_matrix(e)
+def _interleave(n: int, blocks) -> sp.csr_matrix:
+    """Sum of scalar matrices placed at interleaved DOFs: entry (i, j) of block (b, a) goes to (3i+b, 3j+a)."""
+    rows, cols, vals = [], [], []
+    for b, a, S in blocks:
+        S = S.tocoo()
+        rows.append(3 * S.row + b)
+        cols.append(3 * S.col + a)
+        vals.append(S.data)
+    return sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(n, n)).tocsr()
 
 
 def scalar_gradient_blocks(basis) -> list[list[sp.csr_matrix]]:
@@ -84,13 +90,14 @@ def assemble(mesh: PatchMesh) -> FEMatrices:
 
     G = scalar_gradient_blocks(basis)
     G1 = scalar_gradient_blocks(basis1)
+    n = 3 * mesh.n_nodes
     lap = G[0][0] + G[1][1] + G[2][2]
-    K_lambda = sum(sp.kron(G1[a][b], _unit(b, a)) for a in range(3) for b in range(3))
-    K_mu = sp.kron(lap, sp.identity(3)) + sum(
-        sp.kron(G[b][a], _unit(b, a)) for a in range(3) for b in range(3)
-    )
+    # block (b, a) of K_lambda is G1_ab; block (b, a) of K_mu is delta_ab lap + G_ba (one COO pass each)
+    K_lambda = _interleave(n, [(b, a, G1[a][b]) for a in range(3) for b in range(3)])
+    K_mu = _interleave(n, [(b, a, G[b][a]) for a in range(3) for b in range(3)]
+                       + [(c, c, lap) for c in range(3)])
     Ms = asm(BilinearForm(lambda u, v, w: u * v), basis)
-    M0 = sp.kron(Ms, sp.identity(3))
+    M0 = _interleave(n, [(c, c, Ms) for c in range(3)])
 
     f_p = _pressure_load(m, mesh, elem)
     f_act = _active_load(basis, mesh)

@@ -95,7 +95,7 @@ class PatchModel:
         """Exact (by default modal) first-order-hold discretisation for one ``theta``."""
         theta = _check_theta(theta)
         M, K = self.matrices(theta)
-        return discretise(M, K, theta[1], theta[2], self.loads, dt or self.config.dt,
+        return discretise(M, K, theta[1], theta[2], self.loads, self.config.dt if dt is None else dt,
                           method or self.config.method)
 
     def continuous(self, theta):
@@ -124,7 +124,9 @@ class PatchModel:
         if nz.process_kind == "diagonal":
             return np.diag(np.r_[np.full(r, nz.position_std**2), np.full(r, nz.velocity_std**2)])
         theta = self.config.theta if theta is None else theta
-        dt = dt or self.config.dt
+        dt = self.config.dt if dt is None else dt
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt: positive time step expected, got {dt}")
         Fc, _ = self.continuous(theta)
         W = self._accel_projection()
         Qc = np.zeros((2 * r, 2 * r))
