@@ -286,17 +286,10 @@ def bench_discretise(*, quick: bool = False) -> dict:
 
 # -- 3. Kalman step -----------------------------------------------------------------------------
 def _measurement_set(sim):
-    """Patch-frame MeasurementSet of a simulation (as ``heartcv simulate`` writes it)."""
-    from tracker.measurements import MeasurementSet
+    """Patch-frame MeasurementSet of a simulation (as ``heartcv model simulate`` writes it)."""
+    from tracker.simulate import to_measurements
 
-    K, P, _ = sim.positions.shape
-    cov = np.broadcast_to(np.eye(3) * sim.measurement_std**2, (K, P, 3, 3)).copy()
-    cov[~np.isfinite(sim.measurements).all(axis=2)] = np.nan
-    inputs = np.hstack([sim.inputs, sim.translation])
-    names = tuple(sim.input_names) + ("respiration_x", "respiration_y", "respiration_z")
-    units = tuple("Pa" for _ in sim.input_names) + ("m", "m", "m")
-    return MeasurementSet(sim.times, np.arange(P), sim.measurements, cov, sim.reference, inputs, names, units,
-                          "patch", meta={"producer": "benchmarks"})
+    return to_measurements(sim, {"producer": "benchmarks"})
 
 
 def bench_kf(*, quick: bool = False) -> dict:

@@ -52,9 +52,8 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
 
     from tracker import inputs as inp
     from tracker.io import file_hash, write_measurements, write_truth
-    from tracker.simulate import simulate as run
+    from tracker.simulate import simulate as run, to_measurements
 
-    from .convert import simulation_to_measurements
 
     m = load_model(model_file)
     rng = np.random.default_rng(seed)
@@ -81,7 +80,7 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
         raise BadInput(str(exc)) from None
     meta = {"producer": "heartcv model simulate", "seed": seed, "model": str(model_file),
             "inputs_hash": {"model": file_hash(model_file)}, "stiffness_cycle": stiffness_cycle}
-    meas = simulation_to_measurements(sim, meta)
+    meas = to_measurements(sim, meta)
     write_measurements(output, meas)
     if truth_path:
         write_truth(truth_path, sim, meta)

@@ -20,7 +20,7 @@ import numpy as np
 from . import inputs as inp
 from .model import Observation, PatchModel
 
-__all__ = ["InputSignals", "Simulation", "input_signals", "simulate"]
+__all__ = ["InputSignals", "Simulation", "input_signals", "simulate", "to_measurements"]
 
 
 @dataclass(frozen=True)
@@ -202,3 +202,18 @@ def simulate(model: PatchModel, duration: float, rng: np.random.Generator, *, th
         meas[hide] = np.nan
     return Simulation(times, theta_fine[::substeps].copy(), u_fine[::substeps].copy(), signals.names,
                       translation, states, disp, pts, obs.reference, positions, meas, sigma)
+
+
+def to_measurements(sim: Simulation, meta: dict | None = None):
+    """The patch-frame :class:`~tracker.measurements.MeasurementSet` of a simulation (isotropic covariance
+    ``measurement_std^2 I``; respiration as input columns ``respiration_x/y/z`` in m)."""
+    from .measurements import MeasurementSet
+
+    K, P, _ = sim.positions.shape
+    cov = np.broadcast_to(np.eye(3) * sim.measurement_std**2, (K, P, 3, 3)).copy()
+    cov[~np.isfinite(sim.measurements).all(axis=2)] = np.nan
+    inputs = np.hstack([sim.inputs, sim.translation])
+    names = tuple(sim.input_names) + ("respiration_x", "respiration_y", "respiration_z")
+    units = tuple("Pa" for _ in sim.input_names) + ("m", "m", "m")
+    return MeasurementSet(sim.times, np.arange(P), sim.measurements, cov, sim.reference, inputs, names, units,
+                          "patch", meta=dict(meta or {}))

@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cli.convert import simulation_to_measurements
-from tracker.simulate import simulate
+from tracker.simulate import simulate, to_measurements
 from tracker.tracking import locate_points, run_kalman
 
 
@@ -46,7 +45,7 @@ def test_time_varying_theta_changes_the_motion(paper_model):
 
 def _meas(model, seed, duration=10.0, missing=0.0):
     sim = simulate(model, duration, np.random.default_rng(seed), missing_fraction=missing)
-    return sim, simulation_to_measurements(sim, {"seed": seed})
+    return sim, to_measurements(sim, {"seed": seed})
 
 
 def test_kf_nis_consistent_over_20_seeds(paper_model):
