@@ -81,7 +81,7 @@ def scalar_gradient_blocks(basis) -> list[list[sp.csr_matrix]]:
 
 def assemble(mesh: PatchMesh) -> FEMatrices:
     """Assemble ``K_lambda``, ``K_mu``, ``M0`` and the load vectors for a patch mesh."""
-    from skfem import Basis, BilinearForm, ElementHex1, FacetBasis, LinearForm, asm
+    from skfem import Basis, BilinearForm, ElementHex1, asm
 
     m = mesh.skfem_mesh()
     elem = ElementHex1()
@@ -118,10 +118,9 @@ def _pressure_load(m, mesh: PatchMesh, elem) -> np.ndarray:
     for b in range(3):
         col = asm(LinearForm(lambda v, w, b=b: -w.n[b] * v), fb)
         f[b::3] = col
-    # scikit-fem orients boundary-facet normals outward; guard against a flipped convention
-    centre_normal_y = f[1::3].sum()
-    if centre_normal_y < 0:  # traction -p n must push the wall outward (+y)
-        f = -f
+    # scikit-fem orients boundary-facet normals outward, so the traction -p n pushes the wall towards +y
+    if not f[1::3].sum() > 0:
+        raise RuntimeError("pressure load points inward: boundary-facet normals are not outward")
     return f
 
 

@@ -176,7 +176,6 @@ class PatchModel:
     def shape_matrix(self, param) -> sp.csr_matrix:
         """Trilinear shape-function matrix N (P, n_nodes) at material points ``(s, t, d)`` (P, 3)."""
         param = np.atleast_2d(np.asarray(param, float))
-        g = self.mesh.geometry
         axes = self.mesh.axes
         idx, frac = [], []
         for a, (coord, ax) in enumerate(zip(param.T, axes)):
@@ -206,7 +205,6 @@ class PatchModel:
         N = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                           shape=(P, self.mesh.n_nodes))
         N.eliminate_zeros()
-        del g
         return N
 
     def observation(self, param) -> Observation:

@@ -85,13 +85,13 @@ def locate_points(model: PatchModel, meas: MeasurementSet, *, max_depth=None) ->
 
 
 def _block_diag_R(cov_k: np.ndarray) -> np.ndarray:
+    """Block-diagonal R (3P, 3P) of per-point covariances (P, 3, 3); unseen points get an identity block
+    (their rows are dropped by the update anyway)."""
     P = cov_k.shape[0]
-    R = np.zeros((3 * P, 3 * P))
-    for j in range(P):
-        c = cov_k[j]
-        R[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = np.where(np.isfinite(c), c, 0.0) if np.isfinite(c).all() \
-            else np.eye(3)
-    return R
+    blocks = np.where(np.isfinite(cov_k).all(axis=(1, 2))[:, None, None], cov_k, np.eye(3))
+    R = np.zeros((P, 3, P, 3))
+    R[np.arange(P), :, np.arange(P), :] = blocks
+    return R.reshape(3 * P, 3 * P)
 
 
 def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=False,
