@@ -21,6 +21,12 @@ FORMAT = "heartcv.model"
 FORMAT_VERSION = 1
 
 
+# prior standard deviation in phi units when the model file gives none (spec/model.md §4.2)
+DEFAULT_PRIOR_STD = {"rho": 0.3, "alpha1": 1.0, "alpha2": 1.0, "E": 0.5, "nu": 0.5}
+GE_DEFAULTS = {"nodes": 5, "variant": "A", "sqrt": "cholesky", "truncation": "sequential"}
+UKF_DEFAULTS = {"alpha": 0.1, "beta": 2.0, "kappa": 0.0}
+
+
 class ConfigError(ValueError):
     """A model file field is missing, unknown or out of range; ``field`` names it."""
 
@@ -59,6 +65,9 @@ class EstimationConfig:
     random_walk_std: dict = field(default_factory=dict)  # phi units per step
     bounds: dict = field(default_factory=dict)
     epsilon: tuple = (None, None)
+    prior_std_si: dict = field(default_factory=dict)  # SI units per estimated parameter (converted at theta)
+    ge: dict = field(default_factory=lambda: dict(GE_DEFAULTS))
+    ukf: dict = field(default_factory=lambda: dict(UKF_DEFAULTS))
 
 
 @dataclass(frozen=True)
@@ -95,6 +104,32 @@ class ModelConfig:
             if head.startswith("bounds."):
                 raise ConfigError(f"estimation.{head}", msg) from None
             raise ConfigError("estimation", str(exc)) from None
+
+    def prior_std_phi(self) -> np.ndarray:
+        """Prior standard deviation of the estimated parameters in phi units (dim,).
+
+        ``prior_std`` is taken as given; ``prior_std_si`` (SI units) is converted at the model's theta with
+        the delta method, ``sigma_phi = sigma_theta / (d theta / d phi)``; absent entries get
+        ``DEFAULT_PRIOR_STD``.
+        """
+        space = self.parameter_space()
+        est = self.estimation
+        jac = space.dtheta_dphi(space.to_phi(self.theta))
+        out = []
+        for name in space.estimated:
+            i = NAMES.index(name)
+            if name in est.prior_std:
+                out.append(est.prior_std[name])
+            elif name in est.prior_std_si:
+                out.append(est.prior_std_si[name] / jac[i])
+            else:
+                out.append(DEFAULT_PRIOR_STD[name])
+        return np.array(out, float)
+
+    def random_walk_std_phi(self) -> np.ndarray:
+        """Random-walk standard deviation per frame of the estimated parameters in phi units (dim,)."""
+        space = self.parameter_space()
+        return np.array([self.estimation.random_walk_std.get(n, 0.0) for n in space.estimated], float)
 
     @property
     def input_names(self) -> tuple:
@@ -230,14 +265,40 @@ def _estimation(sec: _Section) -> EstimationConfig:
     if not isinstance(est, (list, tuple)) or any(e not in NAMES for e in est):
         raise ConfigError(sec._name("estimate"), f"a list of parameter names from {list(NAMES)} expected, got {est!r}")
     prior = _per_parameter(sec.section("prior_std"), NAMES)
+    prior_si = _per_parameter(sec.section("prior_std_si"), NAMES)
+    both = sorted(set(prior) & set(prior_si))
+    if both:
+        raise ConfigError(sec._name("prior_std_si"), f"{both[0]} is also given in prior_std; give one of the two")
+    for name, d in (("prior_std", prior), ("prior_std_si", prior_si)):
+        for k, v in d.items():
+            if v <= 0 and k in est:
+                raise ConfigError(sec._name(f"{name}.{k}"), f"an estimated parameter needs a prior std > 0, got {v}")
     walk = _per_parameter(sec.section("random_walk_std"), NAMES)
     bounds = _per_parameter(sec.section("bounds"), NAMES, pair=True)
     eps = sec.section("epsilon")
     e1 = eps.number("alpha1", None, lo=0, lo_open=True, allow_none=True)
     e2 = eps.number("alpha2", None, lo=0, lo_open=True, allow_none=True)
     eps.done()
+    g = sec.section("ge")
+    nodes = g.number("nodes", GE_DEFAULTS["nodes"], lo=3, hi=51)
+    if nodes != int(nodes) or int(nodes) % 2 == 0:
+        raise ConfigError(g._name("nodes"), f"an odd integer >= 3 expected (shared centre node), got {nodes!r}")
+    ge = {
+        "nodes": int(nodes),
+        "variant": g.choice("variant", GE_DEFAULTS["variant"], ("A", "B")),
+        "sqrt": g.choice("sqrt", GE_DEFAULTS["sqrt"], ("cholesky", "correlation", "eigen")),
+        "truncation": g.choice("truncation", GE_DEFAULTS["truncation"], ("sequential", "tallis", "none")),
+    }
+    g.done()
+    u = sec.section("ukf")
+    ukf = {
+        "alpha": u.number("alpha", UKF_DEFAULTS["alpha"], lo=0, lo_open=True, hi=1),
+        "beta": u.number("beta", UKF_DEFAULTS["beta"], lo=0),
+        "kappa": u.number("kappa", UKF_DEFAULTS["kappa"]),
+    }
+    u.done()
     sec.done()
-    return EstimationConfig(tuple(est), prior, walk, bounds, (e1, e2))
+    return EstimationConfig(tuple(est), prior, walk, bounds, (e1, e2), prior_si, ge, ukf)
 
 
 def _inputs(sec: _Section) -> InputsConfig:

@@ -27,7 +27,7 @@ import scipy.linalg as sla
 
 from .kalman import GaussianState, cholesky_psd, symmetrise
 
-__all__ = ["ConditionalSplit", "conditional_split", "ge_predict"]
+__all__ = ["ConditionalSplit", "conditional_split", "ge_predict", "ge_predict_family"]
 
 
 @dataclass(frozen=True)
@@ -116,15 +116,23 @@ def ge_predict(prior: GaussianState, n_param: int, nodes, weights,
         raise ValueError(f"transition: A ({L}, {n_l}, {n_l}) and b ({L}, {n_l}) expected, got {A.shape}, {b.shape}")
     m_i = mu_l + (nodes - mu_n) @ split.gain_T  # (L, n_l)
     y = np.einsum("lij,lj->li", A, m_i) + b
+    sw = np.sqrt(w)
+    U = (A @ split.R_cond) * sw[:, None, None]  # (L, n_l, n_l): sqrt(w_i) A_i R
+    Wm = np.concatenate(list(U), axis=1)  # (n_l, L n_l)
+    return _assemble(nodes, w, y, Wm @ Wm.T, Q_n, Q_l)
+
+
+def _assemble(nodes, w, y, expected_sandwich, Q_n, Q_l) -> GaussianState:
+    """Mixture moments of spec §2.3 from the nodes, weights, conditional means ``y_i`` and ``sum w_i A_i C_l|n A_i^T``."""
+    M = nodes.shape[1]
+    n_l = y.shape[1]
+    n = M + n_l
     mu_n_p = w @ nodes
     mu_l_p = w @ y
     dth = nodes - mu_n_p
     dy = y - mu_l_p
-    sw = np.sqrt(w)
-    U = (A @ split.R_cond) * sw[:, None, None]  # (L, n_l, n_l): sqrt(w_i) A_i R
-    Wm = np.concatenate(list(U), axis=1)  # (n_l, L n_l)
-    Dy = dy * sw[:, None]
-    C_ll = Wm @ Wm.T + Dy.T @ Dy + Q_l
+    Dy = dy * np.sqrt(w)[:, None]
+    C_ll = expected_sandwich + Dy.T @ Dy + Q_l
     C_ln = (dy * w[:, None]).T @ dth
     C_nn = (dth * w[:, None]).T @ dth + Q_n
     C = np.empty((n, n))
@@ -133,3 +141,37 @@ def ge_predict(prior: GaussianState, n_param: int, nodes, weights,
     C[:M, M:] = C_ln.T
     C[M:, M:] = C_ll
     return GaussianState(np.concatenate([mu_n_p, mu_l_p]), symmetrise(C))
+
+
+def ge_predict_family(prior: GaussianState, n_param: int, nodes, weights, thetas, family, u0, u1, Q_n, Q_l,
+                      split: ConditionalSplit | None = None) -> GaussianState:
+    """GE prediction through a :class:`tracker.transition.TransitionFamily` (modal path, spec §7.2 adapted).
+
+    Same result as :func:`ge_predict` with ``transition(nodes) = (A(theta_i), B0(theta_i) u0 + B1(theta_i) u1)``,
+    but the conditional means are propagated in modal coordinates and ``sum_i w_i A_i C_l|n A_i^T`` costs one
+    modal transform per distinct ``nu`` among the samples instead of two GEMMs per sample.
+
+    Parameters
+    ----------
+    nodes : ndarray (L, M)     samples of the parameter block (estimator coordinates)
+    thetas : ndarray (L, 5)    the same samples as full physical theta
+    family : TransitionFamily
+    u0, u1 : ndarray (n_u,)    inputs at the start and end of the interval
+    """
+    M = n_param
+    mu = prior.mean
+    n_l = mu.size - M
+    nodes = np.asarray(nodes, float)
+    w = np.asarray(weights, float).reshape(-1)
+    L = w.size
+    if nodes.shape != (L, M):
+        raise ValueError(f"nodes: shape ({L}, {M}) expected, got {nodes.shape}")
+    if (w <= 0).any() or abs(w.sum() - 1) > 1e-12:
+        raise ValueError("weights: positive and summing to 1 expected (variants A or B)")
+    split = split or conditional_split(prior, M)
+    m_i = mu[M:] + (nodes - mu[:M]) @ split.gain_T
+    y = family.propagate(thetas, m_i, u0, u1)
+    if y.shape != (L, n_l):
+        raise ValueError(f"family: states of size {n_l} expected, got {y.shape}")
+    return _assemble(nodes, w, y, family.weighted_sandwich(thetas, w, split.C_cond), np.asarray(Q_n, float),
+                     np.asarray(Q_l, float))

@@ -173,20 +173,22 @@ def read_measurements(path) -> MeasurementSet:
 # -- estimates ------------------------------------------------------------------------------------
 _EST_ARRAYS = ("times", "point_ids", "state_mean", "state_var", "theta", "theta_std", "predictions",
                "innovations", "nis", "nis_dof", "truncation_events", "step_time")
+_EST_OPTIONAL = ("phi_mean", "phi_cov")
 
 
 def write_estimates(path, e: EstimateSet, meta: dict | None = None):
     md = dict(e.meta)
     md.update(meta or {})
     md.update({"estimator": e.estimator, "completed_steps": int(e.completed_steps)})
-    _write_npz(path, ESTIMATE_FORMAT, {k: getattr(e, k) for k in _EST_ARRAYS}, md)
+    arrays = {k: getattr(e, k) for k in _EST_ARRAYS + _EST_OPTIONAL}
+    _write_npz(path, ESTIMATE_FORMAT, arrays, md)
 
 
 def read_estimates(path) -> EstimateSet:
     data, meta = _read_npz(path, ESTIMATE_FORMAT, _EST_ARRAYS)
     try:
         return EstimateSet(meta["estimator"], *(data[k] for k in _EST_ARRAYS), int(meta["completed_steps"]),
-                           meta)
+                           meta, *(data.get(k) for k in _EST_OPTIONAL))
     except (KeyError, ValueError) as exc:
         raise FileFormatError(path, f"inconsistent estimate file: {exc}") from None
 

@@ -155,6 +155,8 @@ class EstimateSet:
     step_time : (K,)                      wall time per step, s
     completed_steps : int                 steps completed (== K unless the run stopped)
     meta : dict
+    phi_mean : (K, M), optional           joint estimators: parameter block mean in phi coordinates
+    phi_cov : (K, M, M), optional         its covariance (``meta['estimated']`` names the M parameters)
     """
 
     estimator: str
@@ -172,9 +174,17 @@ class EstimateSet:
     step_time: np.ndarray
     completed_steps: int
     meta: dict = field(default_factory=dict)
+    phi_mean: np.ndarray | None = None
+    phi_cov: np.ndarray | None = None
 
     def __post_init__(self):
         K = np.asarray(self.times).size
+        if (self.phi_mean is None) != (self.phi_cov is None):
+            raise ValueError("phi_mean and phi_cov: both or neither expected")
+        if self.phi_mean is not None:
+            pm, pc = np.asarray(self.phi_mean), np.asarray(self.phi_cov)
+            if pm.ndim != 2 or pm.shape[0] != K or pc.shape != (K, pm.shape[1], pm.shape[1]):
+                raise ValueError(f"phi_mean/phi_cov: shapes (K, M) and (K, M, M) expected, got {pm.shape}, {pc.shape}")
         P = np.asarray(self.point_ids).size
         expect = {
             "state_mean": (K, None), "state_var": (K, None), "theta": (K, 5), "theta_std": (K, 5),
