@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import sys
+from pathlib import Path
 
 import click
 
@@ -10,23 +12,42 @@ from .options import BadInput, StageFailed, emit_json, json_opt, load_model
 
 log = logging.getLogger(__name__)
 
-ESTIMATORS = ("kf",)
+ESTIMATORS = ("kf", "ge", "ukf", "ekf")
+ESTIMATOR_HELP = ("kf: Kalman filter with the model file's parameters held fixed; ge: Rao-Blackwellised Gaussian "
+                  "estimator of state and parameters (the paper's); ukf / ekf: joint unscented / extended Kalman "
+                  "filters on the augmented state (baselines). See docs/estimators.md.")
+
+
+def _partial_path(output) -> Path:
+    p = Path(output)
+    return p.with_name(p.name[: -len(p.suffix)] + ".partial" + p.suffix if p.suffix else p.name + ".partial")
 
 
 @click.command()
 @click.argument("measurements", type=click.Path(dir_okay=False))
 @click.option("--model", "model_file", type=click.Path(exists=True, dir_okay=False), required=True,
               help="Model file (YAML).")
-@click.option("--estimator", type=click.Choice(ESTIMATORS), default="kf", show_default=True,
-              help="kf: Kalman filter with the model file's parameters held fixed.")
+@click.option("--estimator", type=click.Choice(ESTIMATORS), default="kf", show_default=True, help=ESTIMATOR_HELP)
+@click.option("--nodes", "nodes", type=int, default=None,
+              help="GE: Dirac nodes per parameter axis D (odd, >= 3; default from the model file, 5).")
+@click.option("--truncation", type=click.Choice(("sequential", "tallis", "none")), default=None,
+              help="GE: box truncation of the parameters (default from the model file: sequential).")
 @click.option("--joseph", is_flag=True, help="Joseph-form covariance update.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
-def track(measurements, model_file, estimator, joseph, output, as_json):
-    """Estimate the surface state from MEASUREMENTS and record one-step predictions."""
+@click.pass_context
+def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, output, as_json):
+    """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
+    one-step predictions of every point.
+
+    A run whose estimate becomes non-finite stops with exit 1; the steps done are written to
+    OUTPUT with `.partial` before the suffix (completed_steps < frames), never to OUTPUT itself.
+    """
     import numpy as np
 
     from tracker.io import FileFormatError, file_hash, read_measurements, write_estimates
+    from tracker.joint import JointOptions, run_joint
+    from tracker.params import NAMES
     from tracker.tracking import EstimationDiverged, run_kalman
 
     try:
@@ -34,21 +55,44 @@ def track(measurements, model_file, estimator, joseph, output, as_json):
     except FileFormatError as exc:
         raise BadInput(str(exc)) from None
     m = load_model(model_file)
+    if estimator == "kf" and (nodes is not None or truncation is not None):
+        raise BadInput("--nodes and --truncation apply to the GE only")
+    options = None
+    if estimator != "kf":
+        if not m.config.estimation.estimate:
+            raise BadInput(f"{model_file}: estimation.estimate is empty; {estimator} needs at least one parameter")
+        try:
+            options = JointOptions.from_config(m.config, nodes=nodes, truncation=truncation, joseph=joseph)
+        except ValueError as exc:
+            raise BadInput(f"--nodes/--truncation: {exc}") from None
     from threadpoolctl import threadpool_limits
 
+    verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
+    meta = {"producer": "heartcv track", "model": str(model_file),
+            "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
     try:
         with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (spec/estimator §7.5)
-            est = run_kalman(m, meas, joseph=joseph)
+            if estimator == "kf":
+                est = run_kalman(m, meas, joseph=joseph)
+            else:
+                with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
+                        if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
+                    est = run_joint(m, meas, estimator, options=options,
+                                    progress=lambda done, total: bar.update(1))
     except np.linalg.LinAlgError as exc:
         raise StageFailed(f"{estimator}: numerical failure ({exc}); no estimate file written") from None
     except EstimationDiverged as exc:
-        raise StageFailed(f"{estimator} diverged at step {exc.step}; no estimate file written") from None
+        where = ""
+        if exc.partial is not None and exc.partial.completed_steps > 0:
+            part = _partial_path(output)
+            write_estimates(part, exc.partial, dict(meta, partial=True))
+            where = f"; the {exc.partial.completed_steps} steps done were written to {part} (marked partial)"
+        raise StageFailed(f"{estimator} diverged at step {exc.step} (time {meas.times[exc.step]:.4g} s): the "
+                          f"estimate became non-finite{where}; no estimate file written to {output}") from None
     except ValueError as exc:
         raise BadInput(f"{measurements}: {exc}") from None
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
-    meta = {"producer": "heartcv track", "model": str(model_file),
-            "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
     write_estimates(output, est, meta)
     seen = np.isfinite(est.nis)
     summary = {
@@ -57,11 +101,29 @@ def track(measurements, model_file, estimator, joseph, output, as_json):
         "nis_mean": float(np.mean(est.nis[seen])) if seen.any() else None,
         "nis_dof_mean": float(np.mean(est.nis_dof[seen])) if seen.any() else None,
         "prediction_rmse_m": est.prediction_rmse() if np.isfinite(est.prediction_rmse()) else None,
-        "step_ms_median": float(np.median(est.step_time) * 1e3),
+        "step_ms_median": float(np.median(est.step_time[1:] if est.step_time.size > 1 else est.step_time) * 1e3),
+        "theta_final": dict(zip(NAMES, map(float, est.theta[-1]))),
+        "theta_std_final": dict(zip(NAMES, map(float, est.theta_std[-1]))),
+        "truncation_events": int(est.truncation_events.sum()),
+        "estimated": list(est.meta.get("estimated", [])),
         "output": output,
     }
     if as_json:
         emit_json(summary)
     else:
-        log.warning("wrote %s: %d steps, prediction RMSE %.4g mm", output, summary["steps"],
-                    summary["prediction_rmse_m"] * 1e3)
+        msg = f"wrote {output}: {summary['steps']} steps, prediction RMSE {summary['prediction_rmse_m'] * 1e3:.4g} mm"
+        if estimator != "kf":
+            msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
+                                    for n in summary["estimated"])
+        log.warning(msg)
+
+
+class _NoBar:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False
+
+    def update(self, n):
+        pass

@@ -101,7 +101,10 @@ class JointPrior:
 
 
 def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None) -> JointPrior:
-    """Prior ``N([phi(theta0); x_static(theta0, u0)], blkdiag(diag(prior_std^2), C_l0))``.
+    """Prior of the joint state: ``x_n ~ N(phi(theta0), diag(prior_std^2))`` and the kinematic state at the
+    equilibrium of the (uncertain) parameters, ``x_l = x_static(phi) + e``, ``e ~ N(0, C_l0)``, linearised at
+    ``phi0``: mean ``x_static(phi0)``, ``C_ln = J C_nn``, ``C_ll = C_l0 + J C_nn J^T`` with
+    ``J = d x_static / d phi`` (central differences).
 
     Parameters
     ----------
@@ -128,11 +131,19 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None) -> JointPrio
     space = ParameterSpace(theta0, space.estimated, space.lower, space.upper, space.eps)
     x_n = space.x_from_theta(theta0)
     x_l = model.static_state(theta0, u0)
-    C_l = model.initial_covariance()
+    # The initial kinematic state is the equilibrium of the *true* parameters: linearise x_static(phi) around
+    # phi0 (central differences) so that the prior carries the cross-covariance C_ln = J C_nn.
+    h = 1e-4
+    J = np.stack([(model.static_state(space.theta_from_x(x_n + h * e), u0)
+                   - model.static_state(space.theta_from_x(x_n - h * e), u0)) / (2 * h) for e in np.eye(M)],
+                 axis=1)
+    C_nn = np.diag(sd**2)
     n_l = x_l.size
     C = np.zeros((M + n_l, M + n_l))
-    C[:M, :M] = np.diag(sd**2)
-    C[M:, M:] = C_l
+    C[:M, :M] = C_nn
+    C[M:, :M] = J @ C_nn
+    C[:M, M:] = C[M:, :M].T
+    C[M:, M:] = model.initial_covariance() + J @ C_nn @ J.T
     Q_n = np.diag(cfg.random_walk_std_phi() ** 2)
     Q_l = model.process_noise(theta0)
     return JointPrior(GaussianState(np.concatenate([x_n, x_l]), C), space, Q_n, Q_l)

@@ -70,12 +70,23 @@ class MeasurementSet:
             raise ValueError(f"positions: frame {k}, point {p} has some but not all coordinates NaN")
         cs = cov[seen]
         if cs.size:
-            if not np.isfinite(cs).all():
-                raise ValueError("covariances: non-finite covariance for an observed point")
-            if np.abs(cs - np.swapaxes(cs, -1, -2)).max() > 1e-9 * np.abs(cs).max():
-                raise ValueError("covariances: not symmetric")
-            if (np.linalg.eigvalsh(cs).min(axis=-1) <= 0).any():
-                raise ValueError("covariances: not positive definite for some observation")
+            where = np.argwhere(seen)
+
+            def first(bad, what):
+                k, p = where[np.flatnonzero(bad)[0]]
+                raise ValueError(f"covariances: frame {k}, point {p}: {what}")
+
+            fin = np.isfinite(cs).all(axis=(1, 2))
+            if not fin.all():
+                first(~fin, "non-finite covariance for an observed point")
+            scale = np.abs(cs).max(axis=(1, 2))
+            asym = np.abs(cs - np.swapaxes(cs, -1, -2)).max(axis=(1, 2))
+            if (asym > 1e-9 * scale).any():
+                first(asym > 1e-9 * scale, "not symmetric")
+            ev = np.linalg.eigvalsh(0.5 * (cs + np.swapaxes(cs, -1, -2)))
+            bad = ev[:, 0] <= 1e-12 * np.maximum(ev[:, -1], np.finfo(float).tiny)
+            if bad.any():
+                first(bad, "singular or not positive definite")
         ref = _ro(self.reference)
         if ref.shape != (P, 3) or not np.isfinite(ref).all():
             raise ValueError(f"reference: finite array of shape ({P}, 3) expected, got {ref.shape}")
