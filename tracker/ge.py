@@ -170,8 +170,7 @@ def ge_predict_family(prior: GaussianState, n_param: int, nodes, weights, thetas
         raise ValueError("weights: positive and summing to 1 expected (variants A or B)")
     split = split or conditional_split(prior, M)
     m_i = mu[M:] + (nodes - mu[:M]) @ split.gain_T
-    y = family.propagate(thetas, m_i, u0, u1)
+    y, sandwich = family.propagate_and_sandwich(thetas, m_i, w, split.C_cond, u0, u1)
     if y.shape != (L, n_l):
         raise ValueError(f"family: states of size {n_l} expected, got {y.shape}")
-    return _assemble(nodes, w, y, family.weighted_sandwich(thetas, w, split.C_cond), np.asarray(Q_n, float),
-                     np.asarray(Q_l, float))
+    return _assemble(nodes, w, y, sandwich, np.asarray(Q_n, float), np.asarray(Q_l, float))

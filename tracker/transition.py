@@ -125,7 +125,7 @@ class TransitionFamily:
             raise ValueError(f"nu: must lie in (0, 0.5), got {nu}")
         a = nu / ((1 + nu) * (1 - 2 * nu))
         b = 1.0 / (2 * (1 + nu))
-        lam, V = sla.eigh(a * self._Kl + b * self._Km, driver="evr", check_finite=False)
+        lam, V = sla.eigh(a * self._Kl + b * self._Km, driver="evd", check_finite=False)
         self.eig_count += 1
         if lam[0] <= 0:
             raise ValueError("K must be positive definite on the free DOFs (is the rim clamped?)")
@@ -201,13 +201,26 @@ class TransitionFamily:
 
     def weighted_sandwich(self, thetas, weights, C) -> np.ndarray:
         """``sum_i w_i A(theta_i) C A(theta_i)^T`` (2r, 2r) for any weights (one modal transform per nu group)."""
+        return self.propagate_and_sandwich(thetas, None, weights, C)[1]
+
+    def propagate_and_sandwich(self, thetas, X, weights, C, u0=None, u1=None):
+        """:meth:`propagate` of X (or None) and :meth:`weighted_sandwich` of C in one pass over the nu groups."""
         th = np.atleast_2d(np.asarray(thetas, float))
         w = np.asarray(weights, float).reshape(-1)
         if w.size != th.shape[0]:
             raise ValueError(f"weights: {th.shape[0]} values expected, got {w.size}")
-        out = np.zeros((2 * self.r, 2 * self.r))
+        n = 2 * self.r
+        if X is not None:
+            X = np.atleast_2d(np.asarray(X, float))
+            if X.shape != (th.shape[0], n):
+                raise ValueError(f"X: shape ({th.shape[0]}, {n}) expected, got {X.shape}")
+        Y = None if X is None else np.empty_like(X)
+        out = np.zeros((n, n))
         for basis, idx in self.groups(th):
-            G, _ = self.modal_terms(th[idx], basis)
+            G, bt = self.modal_terms(th[idx], basis, u0, u1)
+            if X is not None:
+                yt = np.einsum("iabp,ibp->iap", G, basis.to_modal(X[idx])) + bt
+                Y[idx] = basis.from_modal(yt)
             Ct = basis.cov_to_modal(C)
             wg = w[idx]
             S = np.zeros_like(Ct)
@@ -220,7 +233,7 @@ class TransitionFamily:
                     if b != a:
                         S[b, a] = S[a, b].T
             out += basis.cov_from_modal(S)
-        return out
+        return Y, out
 
     def system(self, theta):
         """Dense ``(A, B0, B1)`` for one theta (for tests and for the KF-style sandwich)."""
