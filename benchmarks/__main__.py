@@ -1,4 +1,4 @@
-"""``python -m benchmarks {model,discretise,kf,all} [--json PATH] [--quick]``."""
+"""``python -m benchmarks {model,discretise,kf,estimators,all} [--json PATH] [--quick]``."""
 
 from __future__ import annotations
 
@@ -10,9 +10,11 @@ import sys
 import time
 
 from ._harness import environment
-from .model import SECTIONS, blas_report
+from .estimators import bench_estimators
+from .model import SECTIONS as _MODEL_SECTIONS, blas_report
 
-ORDER = ("model", "discretise", "kf")
+SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators}
+ORDER = ("model", "discretise", "kf", "estimators")
 
 
 def _json_default(o):
@@ -37,7 +39,7 @@ def main(argv=None) -> int:
                     help="section to run (default: all)")
     ap.add_argument("--json", metavar="PATH", help="also write the numbers to this JSON file")
     ap.add_argument("--quick", action="store_true",
-                    help="fewer repeats and no fine mesh (a smoke run, not for reporting)")
+                    help="fewer repeats, frames and no fine mesh (a smoke run, not for reporting)")
     args = ap.parse_args(argv)
 
     sections = ORDER if args.which == "all" else (args.which,)
@@ -49,7 +51,8 @@ def main(argv=None) -> int:
           f"heartcv {env['heartcv']}; {env['processor']}, {env['cpu_count']} CPUs")
     print("BLAS (threadpoolctl.threadpool_info(), library defaults):")
     print("\n".join(lines))
-    print("Small-matrix sections (discretise, kf) run under threadpoolctl.threadpool_limits(1): one BLAS thread.")
+    print("Small-matrix sections (discretise, kf, estimators) run under threadpoolctl.threadpool_limits(1): "
+          "one BLAS thread.")
     print("Times: median of repeats (time.perf_counter, GC off during a sample); n = repeats.")
 
     results = {"started": started, "environment": env, "blas": info, "quick": args.quick, "sections": {}}

@@ -1,0 +1,191 @@
+"""``heartcv simulate``: Monte-Carlo study of the parameter estimators on the model itself (paper §VI.A)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+import time
+
+import click
+
+from .options import BadInput, StageFailed, emit_json, json_opt, load_model, progress, seed_opt
+
+log = logging.getLogger(__name__)
+
+STUDY_FORMAT = ("heartcv.study", 1)
+SUMMARY = "summary.json"
+
+
+def _estimators_handler(ctx, param, value):
+    from tracker.study import ESTIMATORS  # imported here, not at module level: `heartcv --help` stays fast
+
+    names = [v.strip().lower() for v in value.split(",") if v.strip()]
+    if not names:
+        raise click.BadParameter(f"at least one of {', '.join(ESTIMATORS)} expected")
+    unknown = [n for n in names if n not in ESTIMATORS]
+    if unknown:
+        raise click.BadParameter(f"unknown estimator {unknown[0]!r} (choose from {', '.join(ESTIMATORS)})")
+    return tuple(dict.fromkeys(names))
+
+
+@click.command()
+@click.argument("model_file", type=click.Path(exists=True, dir_okay=False))
+@click.option("--runs", type=click.IntRange(min=2), default=50, show_default=True,
+              help="Monte-Carlo runs (the paper uses 50).")
+@click.option("--steps", type=click.IntRange(min=2), default=100, show_default=True,
+              help="Frames per run (at the model's frame rate).")
+@seed_opt
+@click.option("--estimators", default="ge,ukf,ekf,kf", show_default=True, callback=_estimators_handler,
+              help="Comma-separated estimators: ge, ukf, ekf (joint) and kf (parameters held at the initial "
+                   "guess).")
+@click.option("--workers", type=click.IntRange(min=1), default=2, show_default=True,
+              help="Worker processes (1: run in this process).")
+@click.option("-o", "--output", type=click.Path(file_okay=False), required=True, help="Study folder.")
+@json_opt
+@click.pass_context
+def simulate(ctx, model_file, runs, steps, seed, estimators, workers, output, as_json):
+    """Monte-Carlo study of the estimators on MODEL_FILE (paper §VI.A).
+
+    Each run draws a random initial parameter guess, simulates fresh measurements with the model file's
+    parameters and runs every estimator from the guess. Writes study.npz, the figures and summary.json
+    (error, consistency and timing statistics) into the folder given by -o."""
+    from threadpoolctl import threadpool_limits
+
+    from tracker import study as st
+
+    t_start = time.perf_counter()
+    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0)
+    m = load_model(model_file)
+    try:
+        estimators = st.check_estimators(estimators, m.config.parameter_space().dim)
+    except ValueError as exc:
+        raise BadInput(f"{model_file}: {exc}") from None
+
+    with progress(range(runs), "runs", length=runs, verbosity=verbosity) as bar:
+        tick = (lambda done, total: bar.update(1)) if hasattr(bar, "update") else None
+        try:
+            with threadpool_limits(1):  # small matrices: one BLAS thread is far faster (spec/estimator §7.5)
+                study = st.run_study(m, runs=runs, steps=steps, seed=seed, estimators=estimators,
+                                     workers=workers, progress=tick)
+        except FloatingPointError as exc:  # the truth simulation itself diverged
+            raise StageFailed(f"{model_file}: {exc}; nothing written") from None
+        except ValueError as exc:
+            raise BadInput(f"{model_file}: {exc}") from None
+    statistics = study.statistics()
+    for name, s in statistics.items():
+        if s.diverged:
+            log.warning("%s diverged in %d of %d runs (left out of its statistics)", name, s.diverged, runs)
+    if all(s.runs_used == 0 for s in statistics.values()):
+        raise StageFailed(f"every run diverged for every estimator ({', '.join(estimators)}); nothing written")
+
+    summary = st.summary(study, statistics)
+    summary.update({"output": output, "model": str(model_file), "workers": workers})
+    _write(Path(output), study, statistics, summary, model_file, t_start)
+    if as_json:
+        emit_json(summary)
+    else:
+        _log_table(summary)
+
+
+def _write(out: Path, study, statistics, summary: dict, model_file, t_start: float) -> None:
+    """Write study.npz and the figures, then summary.json last, each file atomically; sets
+    ``summary['wall_s']``."""
+    from tracker import __version__, study as st
+    from tracker.io import _write_npz, atomic_path, file_hash
+
+    out.mkdir(parents=True, exist_ok=True)
+    old = _previous_files(out)
+    # summary.json marks a complete study: drop the old one before new files replace part of its set
+    (out / SUMMARY).unlink(missing_ok=True)
+    meta = {"producer": "heartcv simulate", "model": str(model_file),
+            "inputs_hash": {"model": file_hash(model_file)}}
+    _write_npz(out / "study.npz", STUDY_FORMAT, st.arrays(study, statistics), meta)
+    files = ["study.npz"] + _figures(out, study, statistics) + [SUMMARY]
+    summary["wall_s"] = time.perf_counter() - t_start
+    doc = dict(summary)
+    doc.update(meta)
+    doc.update({"files": files, "format": STUDY_FORMAT[0], "format_version": STUDY_FORMAT[1],
+                "heartcv_version": __version__})
+    with atomic_path(out / SUMMARY) as tmp:
+        tmp.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    for name in sorted(set(old) - set(files)):  # figures of the previous study that this one did not redo
+        if Path(name).name == name and name.endswith(".png"):
+            (out / name).unlink(missing_ok=True)
+
+
+def _previous_files(out: Path) -> list:
+    try:
+        doc = json.loads((out / SUMMARY).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    if not isinstance(doc, dict) or doc.get("format") != STUDY_FORMAT[0]:
+        return []
+    return [f for f in doc.get("files", []) if isinstance(f, str)]
+
+
+def _figures(out: Path, study, statistics) -> list:
+    import numpy as np
+
+    from tracker.params import NAMES, UNITS
+
+    from .plots import SYMBOLS, TITLES, consistency_figure, error_figure, save_png
+
+    k = np.arange(study.steps)
+    dt = study.dt
+    written = []
+    n_label = f"{study.runs} Monte-Carlo runs"
+    for j, name in enumerate(study.estimated):
+        series = {e: (s.abs_error_mean[:, j], s.abs_error_var[:, j]) for e, s in statistics.items()
+                  if s.runs_used}
+        fig = error_figure(k, series, quantity=SYMBOLS[name], unit=UNITS[NAMES.index(name)], dt=dt,
+                           title=f"Error of {TITLES[name]} over {n_label}")
+        save_png(fig, out / f"fig2_{name}.png")
+        written.append(f"fig2_{name}.png")
+    joint = {e: s for e, s in statistics.items() if s.anees is not None and s.runs_used}
+    if joint:
+        bands = {s.anees_band for s in joint.values()}
+        band = bands.pop() if len(bands) == 1 else None  # one band unless divergences changed n
+        M = len(study.estimated)
+        fig = consistency_figure(k, {e: s.anees for e, s in joint.items()}, band, reference=M, dt=dt,
+                                 ylabel=f"ANEES of the parameters ({M} dof)",
+                                 title=f"Parameter consistency (ANEES) over {n_label}")
+        save_png(fig, out / "anees.png")
+        written.append("anees.png")
+    used = {e: s for e, s in statistics.items() if s.runs_used}
+    bands = {s.nis_band for s in used.values()}
+    fig = consistency_figure(k, {e: s.nis_per_dof for e, s in used.items()},
+                             bands.pop() if len(bands) == 1 else None, reference=1.0, dt=dt,
+                             ylabel="mean NIS per degree of freedom",
+                             title=f"Measurement consistency (NIS) over {n_label}")
+    save_png(fig, out / "nis.png")
+    written.append("nis.png")
+    return written
+
+
+def _fmt(v, scale=1.0):
+    return "-" if v is None else f"{v * scale:.4g}"
+
+
+def _log_table(summary):
+    from tracker.params import NAMES, UNITS
+
+    from .plots import si_scale
+
+    names = summary["estimated"]
+    ests = summary["estimators"]
+    scale, unit = {}, {}
+    for n in names:
+        values = [s["rmse_initial"][n] for s in ests.values() if s["rmse_initial"][n] is not None]
+        scale[n], unit[n] = si_scale(values, UNITS[NAMES.index(n)])
+    head = "".join(f"  {n + ' [' + unit[n] + '] init->final':>28}" for n in names)
+    log.warning("%d runs x %d steps, seed %d, estimated %s -> %s (%.1f s)", summary["runs"], summary["steps"],
+                summary["seed"], ", ".join(names) or "none", summary["output"], summary["wall_s"])
+    log.warning("%-4s %4s%s  %8s %17s %6s %8s %8s", "est", "div", head, "ANEES", "band", "in", "NIS/dof",
+                "ms/step")
+    for e, s in ests.items():
+        cols = "".join(f"  {_fmt(s['rmse_initial'][n], scale[n]) + ' -> ' + _fmt(s['rmse_final'][n], scale[n]):>28}"
+                       for n in names)
+        band = "-" if s["anees_band"] is None else f"[{s['anees_band'][0]:.3g}, {s['anees_band'][1]:.3g}]"
+        log.warning("%-4s %4d%s  %8s %17s %6s %8s %8s", e, s["diverged"], cols, _fmt(s["anees"]), band,
+                    _fmt(s["anees_in_band_fraction"]), _fmt(s["nis_per_dof_mean"]), _fmt(s["step_ms_median"]))
