@@ -13,7 +13,6 @@ from .options import BadInput, StageFailed, emit_json, json_opt, load_model, pro
 
 log = logging.getLogger(__name__)
 
-STUDY_FORMAT = ("heartcv.study", 1)
 SUMMARY = "summary.json"
 
 
@@ -92,7 +91,7 @@ def _write(out: Path, study, statistics, summary: dict, model_file, t_start: flo
     """Write study.npz and the figures, then summary.json last, each file atomically; sets
     ``summary['wall_s']``."""
     from tracker import __version__, study as st
-    from tracker.io import _write_npz, atomic_path, file_hash
+    from tracker.io import STUDY_FORMAT, atomic_path, file_hash, write_study
 
     out.mkdir(parents=True, exist_ok=True)
     old = _previous_files(out)
@@ -100,7 +99,7 @@ def _write(out: Path, study, statistics, summary: dict, model_file, t_start: flo
     (out / SUMMARY).unlink(missing_ok=True)
     meta = {"producer": "heartcv simulate", "model": str(model_file),
             "inputs_hash": {"model": file_hash(model_file)}}
-    _write_npz(out / "study.npz", STUDY_FORMAT, st.arrays(study, statistics), meta)
+    write_study(out / "study.npz", st.arrays(study, statistics), meta)
     files = ["study.npz"] + _figures(out, study, statistics) + [SUMMARY]
     summary["wall_s"] = time.perf_counter() - t_start
     doc = dict(summary)
@@ -119,6 +118,8 @@ def _previous_files(out: Path) -> list:
         doc = json.loads((out / SUMMARY).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return []
+    from tracker.io import STUDY_FORMAT
+
     if not isinstance(doc, dict) or doc.get("format") != STUDY_FORMAT[0]:
         return []
     return [f for f in doc.get("files", []) if isinstance(f, str)]

@@ -40,6 +40,7 @@ __all__ = [
 MEASUREMENT_FORMAT = ("heartcv.measurements", 1)
 ESTIMATE_FORMAT = ("heartcv.estimates", 1)
 TRUTH_FORMAT = ("heartcv.truth", 1)
+STUDY_FORMAT = ("heartcv.study", 1)
 
 
 class FileFormatError(ValueError):
@@ -205,3 +206,13 @@ def write_truth(path, sim, meta: dict | None = None):
 
 def read_truth(path) -> tuple[dict, dict]:
     return _read_npz(path, TRUTH_FORMAT, ("times", "theta", "positions", "reference"))
+
+
+# -- Monte-Carlo study ----------------------------------------------------------------------------
+def write_study(path, arrays: dict, meta: dict | None = None):
+    """The arrays of a Monte-Carlo study (``heartcv simulate``), written atomically (docs/formats.md)."""
+    _write_npz(path, STUDY_FORMAT, arrays, dict(meta or {}))
+
+
+def read_study(path) -> tuple[dict, dict]:
+    return _read_npz(path, STUDY_FORMAT, ())

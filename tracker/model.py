@@ -314,7 +314,8 @@ def _ritz_basis(fe, free, loads, theta, modes, static_nu, volume):
     lam0, mu0 = lame(1.0, nu0)
     K0 = (lam0 * Kl + mu0 * Km).tocsc()
     k = min(modes, K0.shape[0] - 2)
-    _, vecs = spla.eigsh(K0, k=k, M=M0, sigma=0.0, which="LM")
+    # fixed start vector: ARPACK otherwise starts from a random one and the basis differs per build
+    _, vecs = spla.eigsh(K0, k=k, M=M0, sigma=0.0, which="LM", v0=np.ones(K0.shape[0]))
     cols = [vecs]
     for nu in static_nu:
         lam, mu = lame(1.0, nu)

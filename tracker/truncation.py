@@ -318,7 +318,17 @@ def _sequential(mu_n, C_nn, lower, upper, order):
             continue
         m, v, log_p = (float(x) for x in _truncnorm_stats(al, be))
         g = C_nn[:, j] / sig
+        mu_j = mu_n[j]
         mu_n = mu_n + g * m
+        # the constrained coordinate itself from its nearer bound: exact to rounding of the bound even when the
+        # prior mean is astronomically far outside (mu + sig m would cancel), and never outside the box
+        if al > 0:
+            mu_j = lower[j] + sig * (m - al)
+        elif be < 0:
+            mu_j = upper[j] + sig * (m - be)
+        else:
+            mu_j = mu_j + sig * m
+        mu_n[j] = min(max(mu_j, lower[j]), upper[j])
         C_nn = _sym(C_nn - (1.0 - v) * np.outer(g, g))
         events += 1
         log_prob += log_p

@@ -27,6 +27,7 @@ from tracker.sampling import sample
 from tracker.simulate import simulate, to_measurements
 from tracker.tracking import EstimationDiverged, locate_points, run_kalman
 from tracker.transition import TransitionFamily
+from tracker.truncation import truncate_box
 
 from .lg_checker import LGProblem, check_estimator, make_problem
 
@@ -635,9 +636,12 @@ def test_unknown_estimator_is_rejected(paper_model, short_meas, space):
         JointFilter("kf", paper_model, space, 1 / 30, np.zeros((2, 2)), paper_model.process_noise())
 
 
-def absurd(meas, shift=1e10):
-    """Every observed position moved by ``shift`` metres (finite, so the measurement set is valid)."""
-    return MeasurementSet(meas.times, meas.point_ids, meas.positions + shift, meas.covariances, meas.reference,
+def absurd(meas, shift=1e10, start=2):
+    """Every observed position from frame ``start`` on moved by ``shift`` metres (finite, so the measurement set
+    is valid)."""
+    pos = meas.positions.copy()
+    pos[start:] += shift
+    return MeasurementSet(meas.times, meas.point_ids, pos, meas.covariances, meas.reference,
                           meas.inputs, meas.input_names, meas.input_units)
 
 
@@ -664,35 +668,28 @@ def test_ge_diverging_run_raises_with_partial_result(diverged_ge, short_meas):
     assert np.isnan(part.phi_cov[done:]).all()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "library bug: truncate_box maps the standardised truncated mean back as mu + s m*; with the post-update mean "
-    "far outside the box (phi_E ~ -4.5e13 here) that sum cancels catastrophically (eps |mu| ~ 0.01) and the "
-    "'truncated' mean lands 0.0094 below the lower bound of log E"))
-def test_ge_partial_result_stays_in_the_box(diverged_ge, paper_model):
-    """Even in the extreme conflict every completed step's phi_mean must lie inside the box (spec §3.5: finite
-    moments close to the bound)."""
-    part = diverged_ge.partial
-    lo, up = paper_model.config.parameter_space().bounds_phi
-    done = part.completed_steps
-    assert ((part.phi_mean[:done] >= lo) & (part.phi_mean[:done] <= up)).all(), (part.phi_mean[:done], lo)
+def test_ge_stops_at_the_first_absurd_frame(diverged_ge):
+    """The runaway check stops the run at the update of frame 2 (the first shifted frame), before the absurd
+    state reaches the next prediction: the partial result holds frames 0 and 1."""
+    assert diverged_ge.step == 2 and diverged_ge.partial.completed_steps == 2
+
+
+def test_truncated_mean_far_outside_the_box_lands_on_the_bound():
+    """Regression (found with a diverging run): a mean 4.5e13 below the box used to come back as mu + s m*,
+    which cancels to 6.8984 < log(1000) = 6.9078. The constrained coordinate is now computed from its bound."""
+    res = truncate_box(np.array([-4.4785217556578484e13]), np.array([[0.05822121785524814]]),
+                       [6.907755278982137], [18.420680743952367], 1)
+    assert 6.907755278982137 <= res.mean[0] <= 6.907755278982137 + 1e-9
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # production behaviour: overflow warnings are not errors
-@pytest.mark.parametrize("name", [
-    pytest.param("ukf", marks=pytest.mark.xfail(
-        strict=True, raises=np.linalg.LinAlgError,
-        reason="library bug: run_joint re-raises LinAlgError('... not positive semi-definite') because "
-               "LinAlgError is a ValueError and its message lacks 'positive definite'")),
-    pytest.param("ekf", marks=pytest.mark.xfail(
-        strict=True, raises=ValueError,
-        reason="library bug: the EKF evaluates the transition at an unclipped mean; nu underflows to 0.0 and "
-               "TransitionFamily's ValueError('nu: must lie in (0, 0.5)') escapes run_joint")),
-])
+@pytest.mark.parametrize("name", ["ukf", "ekf"])
 def test_baseline_diverging_run_raises_estimation_diverged(paper_model, short_meas, name):
-    """The same absurd input must stop the UKF and EKF with EstimationDiverged too (xfail: see the reasons)."""
+    """The same absurd input stops the UKF and EKF with EstimationDiverged too (it used to escape as a
+    LinAlgError from the UKF and as ValueError('nu: must lie in (0, 0.5)') from the EKF)."""
     with pytest.raises(EstimationDiverged) as info:
         run_joint(paper_model, absurd(short_meas), name)
-    assert info.value.partial.completed_steps < short_meas.n_frames
+    assert info.value.step == 2 and info.value.partial.completed_steps == 2
 
 
 # ---------------------------------------------------------------------------------------------------------------

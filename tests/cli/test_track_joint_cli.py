@@ -1,0 +1,124 @@
+"""CLI: heartcv track --estimator ge|ukf|ekf (JSON keys, artifacts, bad input, divergence)."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from cli.main import main
+from tests.conftest import SAMPLES
+from tracker.io import read_estimates, read_measurements, write_measurements
+from tracker.joint import run_joint
+from tracker.measurements import MeasurementSet
+from tracker.model import build_model
+from tracker.io import read_model
+from tracker.params import NAMES
+
+PAPER = str(SAMPLES / "paper_patch.yaml")
+
+
+@pytest.fixture(scope="module")
+def meas_file(tmp_path_factory):
+    d = tmp_path_factory.mktemp("track")
+    path = str(d / "m.npz")
+    res = CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "1", "--seed", "2", "-o", path])
+    assert res.exit_code == 0, res.output
+    return path
+
+
+def _run(args):
+    return CliRunner().invoke(main, args)
+
+
+@pytest.mark.parametrize("name", ["ge", "ukf", "ekf"])
+def test_joint_track_json_and_file(tmp_path, meas_file, name):
+    out = str(tmp_path / f"{name}.npz")
+    res = _run(["track", meas_file, "--model", PAPER, "--estimator", name, "-o", out, "--json"])
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    e = read_estimates(out)
+    assert e.complete and e.estimator == name and s["steps"] == 31
+    assert s["estimated"] == ["E", "nu"]
+    # theta_final / theta_std_final are the file's last row, in physical units, keyed by name
+    assert s["theta_final"] == pytest.approx(dict(zip(NAMES, e.theta[-1])), rel=1e-12)
+    assert s["theta_std_final"] == pytest.approx(dict(zip(NAMES, e.theta_std[-1])), rel=1e-12)
+    assert s["theta_std_final"]["rho"] == 0 and s["theta_std_final"]["E"] > 0
+    assert s["truncation_events"] == int(e.truncation_events.sum())
+    # the model file's prior is centred on the truth: E stays within a few per cent
+    assert s["theta_final"]["E"] == pytest.approx(150e3, rel=0.05)
+    assert e.phi_mean.shape == (31, 2) and e.phi_cov.shape == (31, 2, 2)
+    # same as the library call
+    lib = run_joint(build_model(read_model(PAPER)), read_measurements(meas_file), name)
+    np.testing.assert_allclose(e.theta, lib.theta, rtol=1e-12)
+
+
+@pytest.mark.parametrize("nodes", ["4", "1", "2"])
+def test_even_or_small_node_count_exits_2(tmp_path, meas_file, nodes):
+    out = tmp_path / "x.npz"
+    res = _run(["track", meas_file, "--model", PAPER, "--estimator", "ge", "--nodes", nodes, "-o", str(out)])
+    assert res.exit_code == 2 and "odd integer >= 3" in res.output
+    assert not out.exists()
+
+
+def test_nodes_in_the_model_file_must_be_odd(tmp_path, meas_file):
+    d = yaml.safe_load(open(PAPER))
+    d["estimation"]["ge"] = {"nodes": 6}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(d))
+    res = _run(["track", meas_file, "--model", str(bad), "--estimator", "ge", "-o", str(tmp_path / "x.npz")])
+    assert res.exit_code == 2 and "estimation.ge.nodes" in res.output
+
+
+def test_prior_outside_its_bounds_exits_2(tmp_path, meas_file):
+    d = yaml.safe_load(open(PAPER))
+    d["estimation"]["bounds"]["E"] = [1000.0, 100000.0]  # the model's E = 150 kPa is the prior mean
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(d))
+    res = _run(["track", meas_file, "--model", str(bad), "--estimator", "ge", "-o", str(tmp_path / "x.npz")])
+    assert res.exit_code == 2 and "parameters.E" in res.output and "bounds" in res.output
+
+
+def _with_cov(meas, cov):
+    return MeasurementSet(meas.times, meas.point_ids, meas.positions, cov, meas.reference, meas.inputs,
+                          meas.input_names, meas.input_units)
+
+
+@pytest.mark.parametrize("kind, message", [("asym", "not symmetric"), ("singular", "singular")])
+def test_bad_covariance_in_the_file_exits_2_naming_frame_and_point(tmp_path, meas_file, kind, message):
+    meas = read_measurements(meas_file)
+    cov = meas.covariances.copy()
+    if kind == "asym":
+        cov[3, 5, 0, 1] += 1e-9
+    else:
+        cov[3, 5] = np.diag([1e-8, 1e-8, 0.0])
+    # bypass the writer's validation: write the arrays as a foreign tool would
+    path = tmp_path / "bad.npz"
+    with np.load(meas_file) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["covariances"] = cov
+    np.savez(path, **arrays)
+    out = tmp_path / "x.npz"
+    res = _run(["track", str(path), "--model", PAPER, "--estimator", "ge", "-o", str(out)])
+    assert res.exit_code == 2, res.output
+    assert message in res.output and "frame 3, point 5" in res.output
+    assert not out.exists()
+
+
+def test_diverging_run_exits_1_and_writes_only_a_partial_file(tmp_path, meas_file):
+    meas = read_measurements(meas_file)
+    pos = meas.positions.copy()
+    pos[5:] += 1e10  # finite but absurd from frame 5 on
+    bad = tmp_path / "absurd.npz"
+    write_measurements(bad, MeasurementSet(meas.times, meas.point_ids, pos, meas.covariances, meas.reference,
+                                           meas.inputs, meas.input_names, meas.input_units))
+    out = tmp_path / "ge.npz"
+    res = _run(["track", str(bad), "--model", PAPER, "--estimator", "ge", "-o", str(out)])
+    assert res.exit_code == 1
+    assert "diverged at step 5" in res.output and "no estimate file written" in res.output
+    assert not out.exists()
+    part = read_estimates(tmp_path / "ge.partial.npz")
+    assert part.completed_steps == 5 and not part.complete and part.meta["partial"] is True
+    assert sorted(os.listdir(tmp_path)) == ["absurd.npz", "ge.partial.npz"]
