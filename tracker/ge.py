@@ -38,7 +38,7 @@ class ConditionalSplit:
     ----------
     gain_T : ndarray (M, n_l)      K^T = C_nn^{-1} C_nl
     C_cond : ndarray (n_l, n_l)    C_l|n
-    R_cond : ndarray (n_l, n_l)    lower Cholesky factor of C_l|n (with jitter if needed)
+    R_cond : ndarray (n_l, n_l) or None   lower Cholesky factor of C_l|n (with jitter if needed); None if not asked
     jitter_events : int
     """
 
@@ -48,15 +48,18 @@ class ConditionalSplit:
     jitter_events: int
 
 
-def conditional_split(state: GaussianState, n_param: int) -> ConditionalSplit:
+def conditional_split(state: GaussianState, n_param: int, factor: bool = True) -> ConditionalSplit:
     """Gaussian conditional of the kinematic block given the parameter block (spec §2.2, two triangular
-    solves, never an inverse)."""
+    solves, never an inverse). ``factor=False`` skips the Cholesky factor of ``C_l|n`` (``R_cond`` is then
+    None), which only the dense SYRK path of :func:`ge_predict` needs."""
     C = symmetrise(state.cov)
     M = n_param
     C_nn, C_nl, C_ll = C[:M, :M], C[:M, M:], C[M:, M:]
     L_nn, j1 = cholesky_psd(C_nn)
     gain_T = sla.solve_triangular(L_nn, sla.solve_triangular(L_nn, C_nl, lower=True), lower=True, trans="T")
     C_cond = symmetrise(C_ll - C_nl.T @ gain_T)
+    if not factor:
+        return ConditionalSplit(gain_T, C_cond, None, j1)
     R, j2 = cholesky_psd(C_cond)
     return ConditionalSplit(gain_T, C_cond, R, j1 + j2)
 
@@ -107,7 +110,7 @@ def ge_predict(prior: GaussianState, n_param: int, nodes, weights,
     Q_l = np.asarray(Q_l, float)
     if Q_n.shape != (M, M) or Q_l.shape != (n_l, n_l):
         raise ValueError(f"Q_n, Q_l: shapes ({M}, {M}) and ({n_l}, {n_l}) expected, got {Q_n.shape}, {Q_l.shape}")
-    split = split or conditional_split(prior, M)
+    split = split if split is not None and split.R_cond is not None else conditional_split(prior, M)
     mu_n, mu_l = mu[:M], mu[M:]
     A, b = transition(nodes)
     A = np.asarray(A, float)
@@ -168,7 +171,7 @@ def ge_predict_family(prior: GaussianState, n_param: int, nodes, weights, thetas
         raise ValueError(f"nodes: shape ({L}, {M}) expected, got {nodes.shape}")
     if (w <= 0).any() or abs(w.sum() - 1) > 1e-12:
         raise ValueError("weights: positive and summing to 1 expected (variants A or B)")
-    split = split or conditional_split(prior, M)
+    split = split or conditional_split(prior, M, factor=False)
     m_i = mu[M:] + (nodes - mu[:M]) @ split.gain_T
     y, sandwich = family.propagate_and_sandwich(thetas, m_i, w, split.C_cond, u0, u1)
     if y.shape != (L, n_l):

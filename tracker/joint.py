@@ -32,7 +32,7 @@ from .params import NAMES, ParameterSpace
 from .sampling import sample
 from .tracking import EstimationDiverged, ObservedPoints, _block_diag_R, locate_points
 from .transition import TransitionFamily
-from .truncation import truncate_box
+from .truncation import SKIP_SIGMA, truncate_box
 
 __all__ = ["JointOptions", "JointPrior", "joint_prior", "run_joint", "ESTIMATORS", "JointFilter"]
 
@@ -212,7 +212,7 @@ class JointFilter:
                     lower=self.lower[p], upper=self.upper[p])
         nodes = ss.nodes[:, self.inv_perm]
         thetas = self.space.theta_from_x(nodes)
-        split = conditional_split(state, M)
+        split = conditional_split(state, M, factor=not self.modal)
         if self.modal:
             pred = ge_predict_family(state, M, nodes, ss.weights, thetas, self.family, u0, u1, self.Q_n, self.Q_l,
                                      split=split)
@@ -287,6 +287,11 @@ class JointFilter:
     def truncate(self, state: GaussianState):
         method = self.options.truncation if self.name == "ge" else self.options.baseline_truncation
         if method == "none":
+            return state, 0, 0
+        # every constraint inactive (the skip test of truncate_box, which then returns its input): skip the call
+        sd = np.sqrt(np.diag(state.cov)[:self.M])
+        mu = state.mean[:self.M]
+        if ((self.lower - mu < -SKIP_SIGMA * sd) & (self.upper - mu > SKIP_SIGMA * sd)).all():
             return state, 0, 0
         res = truncate_box(state.mean, symmetrise(state.cov), self.lower, self.upper, self.M, method=method)
         if res.events == 0:

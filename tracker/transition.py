@@ -222,16 +222,16 @@ class TransitionFamily:
                 yt = np.einsum("iabp,ibp->iap", G, basis.to_modal(X[idx])) + bt
                 Y[idx] = basis.from_modal(yt)
             Ct = basis.cov_to_modal(C)
-            wg = w[idx]
-            S = np.zeros_like(Ct)
-            for a in range(2):
-                for b in range(a, 2):
-                    for c_ in range(2):
-                        Ga = G[:, a, c_] * wg[:, None]  # (Lg, r)
-                        for d in range(2):
-                            S[a, b] += (Ga.T @ G[:, b, d]) * Ct[c_, d]
-                    if b != a:
-                        S[b, a] = S[a, b].T
+            # S[a, b] = sum_{c, d} (sum_i w_i g_ac^i (g_bd^i)^T) o Ct[c, d]: all 16 weighted outer products in
+            # one GEMM of (4r x Lg)(Lg x 4r), then one Hadamard contraction
+            Lg = idx.size
+            Gf = G.reshape(Lg, 4 * self.r)
+            W = ((Gf * w[idx][:, None]).T @ Gf).reshape(2, 2, self.r, 2, 2, self.r)  # [a, c, p, b, d, q]
+            S = np.zeros((2, self.r, 2, self.r))  # [a, p, b, q]
+            for c_ in range(2):
+                for d in range(2):
+                    S += W[:, c_, :, :, d, :] * Ct[c_, d][None, :, None, :]
+            S = S.transpose(0, 2, 1, 3)
             out += basis.cov_from_modal(S)
         return Y, out
 
