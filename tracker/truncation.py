@@ -402,6 +402,22 @@ def _lift(mu, C, idx, chol_tt, mu_t, C_t):
     ``mu_r+ = mu_r + K (mu_t - mu_t_prior)``, ``C_rt+ = K C_t``, ``C_rr+ = C_r|t + K C_t K^T``.
     """
     n = mu.shape[0]
+    idx = np.asarray(idx)
+    p = idx.size
+    if p < n and np.array_equal(idx, np.arange(p)):  # the usual case: the leading block; slices, no fancy copies
+        W = solve_triangular(chol_tt, C[:p, p:], lower=True)                  # L^{-1} C_tr
+        K = solve_triangular(chol_tt, W, lower=True, trans="T").T             # C_rt C_tt^{-1}
+        KC = K @ C_t
+        mean = mu.copy()
+        mean[:p] = mu_t
+        mean[p:] += K @ (mu_t - mu[:p])
+        cov = np.empty_like(C)
+        cov[:p, :p] = C_t
+        cov[p:, :p] = KC
+        cov[:p, p:] = KC.T
+        rr = C[p:, p:] - W.T @ W + KC @ K.T
+        cov[p:, p:] = rr
+        return mean, _sym(cov)
     rest = np.setdiff1d(np.arange(n), idx)
     mean, cov = mu.copy(), np.empty_like(C)
     mean[idx] = mu_t
