@@ -31,7 +31,8 @@ def _partial_path(output) -> Path:
 @click.option("--nodes", "nodes", type=int, default=None,
               help="GE: Dirac nodes per parameter axis D (odd, >= 3; default from the model file, 5).")
 @click.option("--truncation", type=click.Choice(("sequential", "tallis", "none")), default=None,
-              help="GE: box truncation of the parameters (default from the model file: sequential).")
+              help="Box truncation of the parameters after every prediction and update: for ge the default comes "
+                   "from the model file (sequential); ukf and ekf do not truncate unless asked.")
 @click.option("--joseph", is_flag=True, help="Joseph-form covariance update.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
@@ -55,14 +56,19 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, o
     except FileFormatError as exc:
         raise BadInput(str(exc)) from None
     m = load_model(model_file)
-    if estimator == "kf" and (nodes is not None or truncation is not None):
-        raise BadInput("--nodes and --truncation apply to the GE only")
+    if estimator == "kf" and truncation is not None:
+        raise BadInput("--truncation applies to the joint estimators (ge, ukf, ekf) only")
+    if estimator != "ge" and nodes is not None:
+        raise BadInput("--nodes applies to the GE only")
     options = None
     if estimator != "kf":
         if not m.config.estimation.estimate:
             raise BadInput(f"{model_file}: estimation.estimate is empty; {estimator} needs at least one parameter")
         try:
-            options = JointOptions.from_config(m.config, nodes=nodes, truncation=truncation, joseph=joseph)
+            if estimator == "ge":
+                options = JointOptions.from_config(m.config, nodes=nodes, truncation=truncation, joseph=joseph)
+            else:
+                options = JointOptions.from_config(m.config, baseline_truncation=truncation, joseph=joseph)
         except ValueError as exc:
             raise BadInput(f"--nodes/--truncation: {exc}") from None
     from threadpoolctl import threadpool_limits
@@ -111,7 +117,9 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, o
     if as_json:
         emit_json(summary)
     else:
-        msg = f"wrote {output}: {summary['steps']} steps, prediction RMSE {summary['prediction_rmse_m'] * 1e3:.4g} mm"
+        rmse = summary["prediction_rmse_m"]
+        msg = f"wrote {output}: {summary['steps']} steps, prediction RMSE " + (
+            f"{rmse * 1e3:.4g} mm" if rmse is not None else "n/a (no point seen after frame 0)")
         if estimator != "kf":
             msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
                                     for n in summary["estimated"])

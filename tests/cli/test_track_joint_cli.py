@@ -122,3 +122,23 @@ def test_diverging_run_exits_1_and_writes_only_a_partial_file(tmp_path, meas_fil
     part = read_estimates(tmp_path / "ge.partial.npz")
     assert part.completed_steps == 5 and not part.complete and part.meta["partial"] is True
     assert sorted(os.listdir(tmp_path)) == ["absurd.npz", "ge.partial.npz"]
+
+
+def test_option_scope_and_single_frame_log(tmp_path, meas_file):
+    out = str(tmp_path / "x.npz")
+    res = _run(["track", meas_file, "--model", PAPER, "--estimator", "ukf", "--nodes", "5", "-o", out])
+    assert res.exit_code == 2 and "--nodes applies to the GE only" in res.output
+    res = _run(["track", meas_file, "--model", PAPER, "--estimator", "kf", "--truncation", "sequential", "-o", out])
+    assert res.exit_code == 2 and "joint estimators" in res.output
+    res = _run(["track", meas_file, "--model", PAPER, "--estimator", "ekf", "--truncation", "sequential", "-o", out,
+                "--json"])
+    assert res.exit_code == 0, res.output
+    assert read_estimates(out).meta["options"]["baseline_truncation"] == "sequential"
+    # one frame: no prediction after frame 0, the log line says so instead of failing
+    meas = read_measurements(meas_file)
+    one = tmp_path / "one.npz"
+    write_measurements(one, MeasurementSet(meas.times[:1], meas.point_ids, meas.positions[:1], meas.covariances[:1],
+                                           meas.reference, meas.inputs[:1], meas.input_names, meas.input_units))
+    res = _run(["track", str(one), "--model", PAPER, "--estimator", "ge", "-o", str(tmp_path / "one_est.npz")])
+    assert res.exit_code == 0, res.output
+    assert "n/a" in res.output
