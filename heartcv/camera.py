@@ -111,7 +111,7 @@ class Camera:
             raise ValueError(f"camera name: a non-empty string without spaces expected, got {self.name!r}")
         for n in ("width", "height"):
             v = getattr(self, n)
-            if isinstance(v, bool) or int(v) != v or v < 1:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or int(v) != v or v < 1:
                 raise ValueError(f"{self.name}: {n} must be a positive integer, got {v!r}")
             object.__setattr__(self, n, int(v))
         K = np.array(self.K, float)
@@ -169,6 +169,7 @@ class Camera:
 
     def _pixels(self, Xc):
         z = Xc[..., 2]
+        z = np.where(z == 0, np.nan, z)  # on the camera plane: NaN, no division warning
         xy = Xc[..., :2] / z[..., None]
         xd = distort_normalised(xy, self.dist)
         K = self.K

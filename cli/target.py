@@ -1,0 +1,120 @@
+"""``heartcv target``: write a calibration target file and its printable PNG and PDF."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import click
+
+from .options import BadInput, emit_json, json_opt
+
+log = logging.getLogger(__name__)
+
+
+class GridSize(click.ParamType):
+    """``COLSxROWS`` (e.g. ``11x8``) -> (cols, rows)."""
+
+    name = "COLSxROWS"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        parts = str(value).lower().replace("×", "x").split("x")
+        try:
+            cols, rows = (int(p) for p in parts)
+        except ValueError:
+            self.fail(f"COLSxROWS expected (e.g. 11x8), got {value!r}", param, ctx)
+        return cols, rows
+
+
+def _positive(ctx, param, value):
+    if value is not None and not value > 0:
+        raise click.BadParameter(f"must be positive, got {value}")
+    return value
+
+
+@click.command()
+@click.option("--type", "kind", type=click.Choice(("charuco", "chessboard")), required=True,
+              help="ChArUco board (partial views allowed) or plain chessboard.")
+@click.option("--squares", type=GridSize(), default=None, metavar="COLSxROWS",
+              help="ChArUco: squares across x down (e.g. 11x8).")
+@click.option("--inner-corners", type=GridSize(), default=None, metavar="COLSxROWS",
+              help="Chessboard: inner corners across x down (OpenCV's pattern size, e.g. 9x6).")
+@click.option("--square-mm", type=float, required=True, callback=_positive, help="Square side in mm.")
+@click.option("--marker-mm", type=float, default=None, callback=_positive,
+              help="ChArUco: marker side in mm (smaller than the square).")
+@click.option("--dict", "dictionary", default="DICT_5X5_250", show_default=True,
+              help="ChArUco: ArUco dictionary (OpenCV name, e.g. DICT_5X5_250, DICT_6X6_250).")
+@click.option("--legacy", is_flag=True,
+              help="ChArUco: OpenCV's legacy pattern (boards made before OpenCV 4.6 with an even number of rows).")
+@click.option("--dpi", type=float, default=300.0, show_default=True, callback=_positive,
+              help="Requested print resolution; adjusted so that every square is a whole number of pixels.")
+@click.option("--margin-mm", type=float, default=None,
+              help="White margin around the squares in mm (default: one square).")
+@click.option("--name", default=None, help="Target name (default: the output file's stem).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
+              help="Target file (.yaml); the PNG and PDF are written beside it with the same stem.")
+@json_opt
+def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legacy, dpi, margin_mm, name, output,
+           as_json):
+    """Write a calibration target: OUTPUT (.yaml) plus OUTPUT's stem .png and .pdf to print.
+
+    The image has an exact physical size: the DPI is adjusted slightly so that each square is a whole number
+    of pixels (e.g. 12 mm squares at 300 dpi: 298.45 dpi, 141 px). Print the PDF at 100 % (actual size).
+    """
+    from heartcv.io import write_board_image, write_target
+    from heartcv.targets import INCH_M, TargetSpec, render_board
+
+    out = Path(output)
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
+    if kind == "charuco":
+        if inner_corners is not None:
+            raise BadInput("--inner-corners applies to chessboards; a ChArUco board is given by --squares")
+        if squares is None:
+            raise BadInput("--squares is required for --type charuco (e.g. --squares 11x8)")
+        if marker_mm is None:
+            raise BadInput("--marker-mm is required for --type charuco")
+        grid = squares
+    else:
+        if squares is not None:
+            raise BadInput("--squares applies to ChArUco boards; a chessboard is given by --inner-corners")
+        if inner_corners is None:
+            raise BadInput("--inner-corners is required for --type chessboard (e.g. --inner-corners 9x6)")
+        if marker_mm is not None or legacy:
+            raise BadInput("--marker-mm and --legacy apply to ChArUco boards only")
+        grid = inner_corners
+    if margin_mm is not None and margin_mm < 0:
+        raise BadInput(f"--margin-mm: must be >= 0, got {margin_mm}")
+    try:
+        spec = TargetSpec(kind, grid, square_mm / 1000, marker_mm / 1000 if kind == "charuco" else None,
+                          dictionary.upper() if kind == "charuco" else None, legacy, name or out.stem)
+        margin_m = spec.square_m if margin_mm is None else margin_mm / 1000
+        image, px_per_m = render_board(spec, dpi=dpi, margin_m=margin_m)
+    except ValueError as exc:
+        raise BadInput(str(exc)) from None
+    png, pdf = out.with_suffix(".png"), out.with_suffix(".pdf")
+    h, w = image.shape
+    size_m = (w / px_per_m, h / px_per_m)
+    write_board_image(png, pdf, image, px_per_m * INCH_M, size_m)
+    write_target(out, spec, png=png, pdf=pdf, px_per_m=px_per_m, image_size=(w, h))  # last: marks completion
+
+    cols, rows = spec.squares_count
+    summary = {
+        "name": spec.name, "type": spec.type, "output": output, "png": str(png), "pdf": str(pdf),
+        "squares": list(spec.squares_count), "inner_corners": list(spec.inner_size), "corners": spec.n_corners,
+        "square_mm": spec.square_m * 1e3, "marker_mm": None if spec.marker_m is None else spec.marker_m * 1e3,
+        "dictionary": spec.dictionary, "legacy_pattern": spec.legacy,
+        "board_size_mm": [v * 1e3 for v in spec.board_size_m], "page_size_mm": [v * 1e3 for v in size_m],
+        "margin_mm": (w - cols * round(spec.square_m * px_per_m)) / 2 / px_per_m * 1e3,
+        "dpi": px_per_m * INCH_M, "dpi_requested": dpi, "px_per_m": px_per_m,
+        "square_px": int(round(spec.square_m * px_per_m)), "image_size_px": [w, h],
+    }
+    if as_json:
+        emit_json(summary)
+    else:
+        bw, bh = summary["board_size_mm"]
+        log.warning("wrote %s (+ %s, %s): %s %dx%d squares, %.1f x %.1f mm at %.6g dpi (%d px per %g mm square); "
+                    "print the PDF at 100 %%", output, png.name, pdf.name, spec.type, cols, rows, bw, bh,
+                    summary["dpi"], summary["square_px"], spec.square_m * 1e3)

@@ -1,0 +1,622 @@
+"""File I/O of the heartcv package: images, target files, rig files and the rig's COLMAP and Kalibr exports.
+
+All reading and writing of ``heartcv/`` happens here, called from ``cli/`` (STYLE.md: pure cores, I/O at the
+edge). Formats are documented in ``docs/formats.md``. Conventions:
+
+- Every write is atomic (:func:`atomic_path`): a temporary file beside the destination, renamed over it only
+  once it is complete.
+- Every problem with an input file raises :class:`HeartcvIOError` (a ``ValueError``) whose message starts with
+  the file's path; ``cli/`` turns it into exit code 2.
+- YAML files are written so that both a YAML library (PyYAML ``safe_load``) and OpenCV's ``cv2.FileStorage``
+  read them (:func:`dump_yaml`); floats are written with Python's ``repr`` and read back exactly.
+
+The module is split into sections with ``# ====`` headers. Other parts of heartcv (calibration, renderer) may
+append their own clearly delimited sections at the end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+from pathlib import Path
+import re
+import tempfile
+
+import numpy as np
+
+from . import __version__
+from .camera import Camera, Rig
+from .targets import INCH_M, TargetSpec
+
+__all__ = [
+    "HeartcvIOError", "atomic_path", "file_hash", "dump_yaml", "read_yaml", "write_yaml",
+    "IMAGE_SUFFIXES", "read_image", "write_image", "list_image_folder", "natural_key",
+    "TARGET_FORMAT", "read_target", "write_target", "write_board_image",
+    "RIG_FORMAT", "DIST_NAMES", "rig_to_dict", "rig_from_dict", "read_rig", "write_rig",
+    "write_colmap", "colmap_camera", "write_kalibr", "kalibr_camchain",
+]
+
+
+# =====================================================================================================================
+# Common: errors, hashes, atomic writes, YAML
+# =====================================================================================================================
+class HeartcvIOError(ValueError):
+    """A file is missing, unreadable, corrupt or not of the expected format; ``path`` names it."""
+
+    def __init__(self, path, message):
+        super().__init__(f"{path}: {message}")
+        self.path = str(path)
+
+
+def file_hash(path) -> str:
+    """``sha256:<hex>`` of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return "sha256:" + h.hexdigest()
+
+
+@contextlib.contextmanager
+def atomic_path(path, suffix=None):
+    """Yield a temporary path beside ``path``; rename it over ``path`` only if the block succeeds.
+
+    The temporary name is ``.<name>.<random><suffix>`` (hidden, so :func:`list_image_folder` never lists it);
+    missing parent folders are created; the final file gets the ordinary permissions of the umask.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def _plain(obj):
+    """numpy scalars/arrays, tuples and paths -> plain Python (YAML-safe) values."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    raise TypeError(f"not representable in YAML: {type(obj).__name__}")
+
+
+def _yaml_dumper():
+    import yaml
+
+    class Dumper(yaml.SafeDumper):
+        # OpenCV's YAML parser (cv2.FileStorage) needs sequences inside mappings to be indented
+        def increase_indent(self, flow=False, indentless=False):
+            return super().increase_indent(flow, False)
+
+    def represent_str(dumper, s):
+        # cv2.FileStorage misreads plain scalars that start like a number ('0.1.0'): quote them
+        style = "'" if s[:1] and (s[0].isdigit() or s[0] in "+-.") else None
+        return dumper.represent_scalar("tag:yaml.org,2002:str", s, style=style)
+
+    Dumper.add_representer(str, represent_str)
+    return Dumper
+
+
+def dump_yaml(data: dict, header: str | None = None) -> str:
+    """YAML text of plain data readable by PyYAML and by ``cv2.FileStorage``.
+
+    Mappings keep their order; lists of scalars are written in flow style (``[1.0, 2.0]``), lists of lists as
+    indented block sequences of flow rows (a 3x3 matrix is three ``- [a, b, c]`` lines); floats use ``repr``
+    (exact round trip); strings that start like a number are quoted. ``header`` lines become ``#`` comments.
+    """
+    import yaml
+
+    text = yaml.dump(_plain(data), Dumper=_yaml_dumper(), sort_keys=False, default_flow_style=None, width=110,
+                     allow_unicode=True)
+    if header:
+        text = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines()) + text
+    return text
+
+
+def write_yaml(path, data: dict, header: str | None = None) -> None:
+    """Write :func:`dump_yaml` text atomically."""
+    text = dump_yaml(data, header)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def read_yaml(path, what: str = "YAML file"):
+    """Parse a YAML file; HeartcvIOError for a missing, unreadable or invalid file."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise HeartcvIOError(path, f"no such {what}" if not path.exists() else f"not a file ({what} expected)")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise HeartcvIOError(path, f"cannot read {what} ({exc})") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise HeartcvIOError(path, f"not valid YAML: {exc}") from None
+
+
+def _check_format(path, d, fmt, required=False):
+    if not isinstance(d, dict):
+        raise HeartcvIOError(path, f"a YAML mapping expected ({fmt[0]} file), got {type(d).__name__}")
+    if required and "format" not in d:
+        raise HeartcvIOError(path, f"no 'format' key: not a {fmt[0]} file")
+    if d.get("format", fmt[0]) != fmt[0]:
+        raise HeartcvIOError(path, f"format {fmt[0]!r} expected, got {d.get('format')!r}")
+    if d.get("format_version", fmt[1]) != fmt[1]:
+        raise HeartcvIOError(path, f"format_version: {fmt[1]} supported, got {d.get('format_version')!r}")
+
+
+# =====================================================================================================================
+# Images
+# =====================================================================================================================
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+_IMREAD = {"gray": "IMREAD_GRAYSCALE", "color": "IMREAD_COLOR", "unchanged": "IMREAD_UNCHANGED"}
+
+
+def natural_key(name: str):
+    """Sort key ordering embedded numbers by value (``img2`` before ``img10``), case-insensitively."""
+    parts = re.split(r"(\d+)", name)
+    return [(0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts], name
+
+
+def list_image_folder(folder) -> list[Path]:
+    """The image files (PNG, JPEG, TIFF, BMP; any case of suffix) of a folder, naturally sorted by name.
+
+    Hidden files (names starting with '.', e.g. the temporary files of an interrupted write) and sub-folders
+    are skipped. An empty list if the folder holds no images; HeartcvIOError if it is not a folder.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise HeartcvIOError(folder, "no such folder" if not folder.exists() else "not a folder")
+    files = [p for p in folder.iterdir()
+             if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()]
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def read_image(path, mode: str = "gray", expected_size=None) -> np.ndarray:
+    """Read an image file.
+
+    Parameters
+    ----------
+    mode : {'gray', 'color', 'unchanged'}
+        8-bit grayscale (H, W), 8-bit BGR (H, W, 3), or the file's own depth and channels.
+    expected_size : (width, height), optional
+        Reject an image of another size.
+
+    Raises
+    ------
+    HeartcvIOError
+        Missing or empty file, unreadable or corrupt data (including PNG and JPEG files cut short, which
+        OpenCV would otherwise decode partially), or the wrong size. The message names the file.
+    """
+    import cv2
+
+    if mode not in _IMREAD:
+        raise ValueError(f"mode: one of {sorted(_IMREAD)} expected, got {mode!r}")
+    path = Path(path)
+    if not path.is_file():
+        raise HeartcvIOError(path, "no such image file" if not path.exists() else "not a file (image expected)")
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise HeartcvIOError(path, f"cannot read image ({exc.strerror})") from None
+    if data.size == 0:
+        raise HeartcvIOError(path, "empty file (image expected)")
+    raw = data[:16].tobytes()
+    if raw.startswith(b"\x89PNG\r\n\x1a\n") and b"IEND" not in data[-16:].tobytes():
+        raise HeartcvIOError(path, "truncated PNG image (no IEND chunk)")
+    if raw.startswith(b"\xff\xd8") and b"\xff\xd9" not in data[-64:].tobytes():
+        raise HeartcvIOError(path, "truncated JPEG image (no end-of-image marker)")
+    img = cv2.imdecode(data, getattr(cv2, _IMREAD[mode]))
+    if img is None or img.size == 0:
+        raise HeartcvIOError(path, "not a readable image (corrupt or unsupported format)")
+    if expected_size is not None and (img.shape[1], img.shape[0]) != tuple(expected_size):
+        raise HeartcvIOError(path, f"image is {img.shape[1]}x{img.shape[0]} px, "
+                                   f"{expected_size[0]}x{expected_size[1]} expected")
+    return img
+
+
+def write_image(path, image: np.ndarray) -> None:
+    """Write an image (format from the suffix: PNG, JPEG, TIFF, BMP) atomically with OpenCV."""
+    import cv2
+
+    path = Path(path)
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ValueError(f"{path}: image suffix one of {IMAGE_SUFFIXES} expected")
+    ok, buf = cv2.imencode(path.suffix.lower(), np.asarray(image))
+    if not ok:
+        raise ValueError(f"{path}: OpenCV could not encode an image of shape {np.shape(image)}")
+    with atomic_path(path) as tmp:
+        buf.tofile(tmp)
+
+
+# =====================================================================================================================
+# Calibration targets (heartcv.target v1) and their printable images
+# =====================================================================================================================
+TARGET_FORMAT = ("heartcv.target", 1)
+
+
+def write_board_image(png_path, pdf_path, image: np.ndarray, dpi: float, size_m) -> None:
+    """Write a printable target image as PNG and/or PDF, each atomically.
+
+    Parameters
+    ----------
+    png_path, pdf_path : path or None
+        Files to write (either may be None).
+    image : ndarray of shape (H, W), uint8
+        From :func:`heartcv.targets.render_board`.
+    dpi : float
+        Pixels per inch of ``image`` (``px_per_m * 0.0254``). The PNG carries it in its ``pHYs`` chunk, which
+        stores whole pixels per metre: ``round(dpi / 0.0254)``.
+    size_m : (width, height)
+        Physical size of the whole image in metres (``(W, H) / px_per_m``); the PDF page has exactly this size
+        and the image fills it, so printing at 100 % ("actual size") reproduces the squares' nominal size.
+    """
+    image = np.asarray(image)
+    if image.ndim != 2 or image.dtype != np.uint8:
+        raise ValueError(f"image: 2-D uint8 expected, got {image.dtype} of shape {image.shape}")
+    w_m, h_m = (float(v) for v in size_m)
+    px_per_m = float(dpi) / INCH_M
+    if abs(image.shape[1] - w_m * px_per_m) > 0.5 or abs(image.shape[0] - h_m * px_per_m) > 0.5:
+        raise ValueError(f"image of {image.shape[1]}x{image.shape[0]} px is not {w_m} x {h_m} m at {dpi} dpi")
+    if png_path is not None:
+        from PIL import Image
+
+        with atomic_path(png_path, suffix=".png") as tmp:
+            Image.fromarray(image).save(tmp, format="PNG", dpi=(dpi, dpi), optimize=True)
+    if pdf_path is not None:
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(w_m / INCH_M, h_m / INCH_M))
+        ax = fig.add_axes((0, 0, 1, 1))
+        ax.set_axis_off()
+        # interpolation 'none': the PDF embeds the pixels unresampled and the printer scales them to the page
+        ax.imshow(image, cmap="gray", vmin=0, vmax=255, interpolation="none", aspect="auto",
+                  extent=(0, image.shape[1], image.shape[0], 0))
+        with atomic_path(pdf_path, suffix=".pdf") as tmp:
+            fig.savefig(tmp, format="pdf", metadata={"Creator": f"heartcv {__version__}", "Producer": None,
+                                                     "CreationDate": None})
+
+
+def write_target(path, spec: TargetSpec, *, png=None, pdf=None, px_per_m=None, image_size=None,
+                 producer: str = "heartcv target") -> None:
+    """Write a target file (``heartcv.target`` v1, YAML) atomically.
+
+    ``png``/``pdf`` are the printable images' paths (written beside the YAML, stored relative to its folder);
+    ``px_per_m`` and ``image_size`` (W, H pixels) describe them. Layout: ``docs/formats.md``, target file.
+    """
+    path = Path(path)
+    d = spec.to_dict()
+    d["heartcv_version"] = __version__
+    d["producer"] = producer
+    d["board_size_m"] = list(spec.board_size_m)
+    if png is not None or pdf is not None:
+        if px_per_m is None or image_size is None:
+            raise ValueError("write_target: px_per_m and image_size describe the images and are required with them")
+        w, h = (int(v) for v in image_size)
+        n = spec.square_m * px_per_m
+        cols, rows = spec.squares_count
+        image = {"dpi": float(px_per_m) * INCH_M, "px_per_m": float(px_per_m), "square_px": int(round(n)),
+                 "size_px": [w, h], "page_size_m": [w / px_per_m, h / px_per_m],
+                 "margin_m": (w - cols * round(n)) / 2 / px_per_m}
+        for key, p in (("png", png), ("pdf", pdf)):
+            if p is not None:
+                image[key] = os.path.relpath(Path(p).resolve(), path.resolve().parent)
+        d["image"] = image
+    header = (f"heartcv calibration target ({spec.type}); print the PDF at 100 % (actual size, no fit-to-page)\n"
+              f"and measure a square: it must be {spec.square_m * 1e3:g} mm. Format: docs/formats.md (target file).")
+    write_yaml(path, d, header)
+
+
+def read_target(path) -> TargetSpec:
+    """Read and validate a target file; HeartcvIOError naming the file and the bad field."""
+    d = read_yaml(path, "target file")
+    _check_format(path, d, TARGET_FORMAT)
+    if "image" in d and not isinstance(d["image"], dict):
+        raise HeartcvIOError(path, "image: a mapping expected")
+    try:
+        return TargetSpec.from_dict(d)
+    except ValueError as exc:
+        raise HeartcvIOError(path, str(exc)) from None
+
+
+# =====================================================================================================================
+# Rig files (heartcv.rig v1)
+# =====================================================================================================================
+RIG_FORMAT = ("heartcv.rig", 1)
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
+_CAMERA_KEYS = ("name", "image_size", "distortion_model", "dist_names", "K", "dist", "cam_from_rig")
+_RIG_DERIVED = ("format", "format_version", "heartcv_version", "rig_frame", "baselines_m", "cameras")
+
+
+def rig_to_dict(rig: Rig) -> dict:
+    """The rig file's content as plain data (the layout of ``docs/formats.md``, rig file).
+
+    Rig-level ``rig.meta`` entries are written at the top level, ``rig.meta['cameras'][name]`` entries inside
+    that camera's entry; ``heartcv_version`` is the running version, ``rig_frame`` and ``baselines_m`` are
+    derived from the cameras.
+    """
+    meta = dict(rig.meta)
+    cam_meta = meta.pop("cameras", None) or {}
+    if not isinstance(cam_meta, dict):
+        raise ValueError("rig.meta['cameras']: a mapping camera name -> per-camera data expected")
+    unknown = sorted(set(cam_meta) - set(rig.names))
+    if unknown:
+        raise ValueError(f"rig.meta['cameras']: no camera named {unknown} in the rig ({rig.names})")
+    for k in ("format", "format_version", "heartcv_version", "rig_frame", "baselines_m"):
+        meta.pop(k, None)
+    c0 = rig.cameras[0]
+    d = {"format": RIG_FORMAT[0], "format_version": RIG_FORMAT[1], "heartcv_version": __version__,
+         "rig_frame": c0.name if np.array_equal(c0.cam_from_rig, np.eye(4)) else "custom"}
+    d.update(meta)
+    d["baselines_m"] = rig.baselines()
+    cams = []
+    for c in rig.cameras:
+        e = {"name": c.name, "image_size": [c.width, c.height], "distortion_model": "opencv",
+             "dist_names": list(DIST_NAMES[:c.dist.size]), "K": c.K, "dist": c.dist, "cam_from_rig": c.cam_from_rig}
+        extra = dict(cam_meta.get(c.name, {}))
+        clash = sorted(set(extra) & set(_CAMERA_KEYS))
+        if clash:
+            raise ValueError(f"rig.meta['cameras'][{c.name!r}]: reserved keys {clash}")
+        e.update(extra)
+        cams.append(e)
+    d["cameras"] = cams
+    return _plain(d)
+
+
+def rig_from_dict(d: dict) -> Rig:
+    """Inverse of :func:`rig_to_dict`; ValueError naming the bad field. ``baselines_m`` is ignored (derived)."""
+    if not isinstance(d, dict):
+        raise ValueError("rig: a mapping expected")
+    if d.get("format", RIG_FORMAT[0]) != RIG_FORMAT[0]:
+        raise ValueError(f"format: {RIG_FORMAT[0]!r} expected, got {d.get('format')!r}")
+    if d.get("format_version", RIG_FORMAT[1]) != RIG_FORMAT[1]:
+        raise ValueError(f"format_version: {RIG_FORMAT[1]} supported, got {d.get('format_version')!r}")
+    entries = d.get("cameras")
+    if not isinstance(entries, list) or not entries:
+        raise ValueError("cameras: a non-empty list of cameras expected")
+    cameras, cam_meta = [], {}
+    for i, e in enumerate(entries):
+        where = f"cameras[{i}]"
+        if not isinstance(e, dict):
+            raise ValueError(f"{where}: a mapping expected")
+        missing = [k for k in ("name", "image_size", "K", "dist", "cam_from_rig") if k not in e]
+        if missing:
+            raise ValueError(f"{where}: missing {missing}")
+        name = e["name"]
+        where = f"cameras[{i}] ({name})"
+        if e.get("distortion_model", "opencv") != "opencv":
+            raise ValueError(f"{where}.distortion_model: 'opencv' expected, got {e['distortion_model']!r}")
+        size = e["image_size"]
+        if not (isinstance(size, list) and len(size) == 2):
+            raise ValueError(f"{where}.image_size: [width, height] expected, got {size!r}")
+        K = _matrix(e["K"], (3, 3), f"{where}.K")
+        dist = _matrix(e["dist"], None, f"{where}.dist")
+        T = _matrix(e["cam_from_rig"], (4, 4), f"{where}.cam_from_rig")
+        try:
+            cameras.append(Camera(name, size[0], size[1], K, dist, T))
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        if "dist_names" in e and list(e["dist_names"] or []) != list(DIST_NAMES[:dist.size]):
+            raise ValueError(f"{where}.dist_names: {list(DIST_NAMES[:dist.size])} expected for {dist.size} "
+                             f"coefficients (OpenCV order), got {e['dist_names']!r}")
+        extra = {k: v for k, v in e.items() if k not in _CAMERA_KEYS}
+        _check_residuals(extra, where)
+        if extra:
+            cam_meta[name] = extra
+    try:
+        rig = Rig(tuple(cameras))
+    except ValueError as exc:
+        raise ValueError(f"cameras: {exc}") from None
+    meta = {k: v for k, v in d.items() if k not in _RIG_DERIVED}
+    if "heartcv_version" in d:
+        meta["heartcv_version"] = d["heartcv_version"]
+    _check_residuals(meta, "rig")
+    if "target" in meta:
+        try:
+            TargetSpec.from_dict(meta["target"])
+        except ValueError as exc:
+            raise ValueError(f"target.{exc}") from None
+    frame = d.get("rig_frame")
+    if frame is not None and frame != "custom":
+        if frame not in rig.names:
+            raise ValueError(f"rig_frame: a camera name or 'custom' expected, got {frame!r}")
+        if np.abs(rig[frame].cam_from_rig - np.eye(4)).max() > 1e-12:
+            raise ValueError(f"rig_frame: {frame}'s cam_from_rig is not the identity; write 'custom'")
+    if cam_meta:
+        meta["cameras"] = cam_meta
+    return Rig(rig.cameras, meta)
+
+
+def _matrix(v, shape, where) -> np.ndarray:
+    try:
+        a = np.array(v, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: numbers expected, got {v!r}") from None
+    if shape is None:
+        if a.ndim != 1:
+            raise ValueError(f"{where}: a flat list expected")
+    elif a.shape != shape:
+        raise ValueError(f"{where}: shape {shape} expected, got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{where}: finite numbers expected")
+    return a
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+def _check_residuals(d: dict, where: str):
+    if "rms_px" in d and not (_is_num(d["rms_px"]) and d["rms_px"] >= 0):
+        raise ValueError(f"{where}.rms_px: a number >= 0 expected, got {d['rms_px']!r}")
+    if "per_view_errors" in d:
+        v = d["per_view_errors"]
+        if not isinstance(v, list) or not all(x is None or (_is_num(x) and x >= 0) for x in v):
+            raise ValueError(f"{where}.per_view_errors: a list of numbers >= 0 (or null) expected")
+    if "std" in d:
+        std = d["std"]
+        ok = isinstance(std, dict) and all(
+            _is_num(x) or (isinstance(x, list) and all(_is_num(y) for y in x)) for x in std.values())
+        if not ok:
+            raise ValueError(f"{where}.std: a mapping of numbers or lists of numbers expected")
+
+
+def write_rig(path, rig: Rig) -> None:
+    """Write a rig file (``heartcv.rig`` v1, YAML) atomically; layout in ``docs/formats.md``."""
+    header = ("heartcv rig: cameras as OpenCV (pinhole + distortion, pixel (0, 0) = centre of the top-left pixel);\n"
+              "cam_from_rig maps rig-frame points (m) into the camera: x_cam = R x_rig + t. docs/formats.md, rig file.")
+    write_yaml(path, rig_to_dict(rig), header)
+
+
+def read_rig(path) -> Rig:
+    """Read and validate a rig file; HeartcvIOError naming the file and the bad field."""
+    d = read_yaml(path, "rig file")
+    _check_format(path, d, RIG_FORMAT)
+    try:
+        return rig_from_dict(d)
+    except ValueError as exc:
+        raise HeartcvIOError(path, str(exc)) from None
+
+
+# =====================================================================================================================
+# Exports: COLMAP (cameras.txt, rigs.txt) and Kalibr (camchain YAML)
+# =====================================================================================================================
+# COLMAP text model, as read by ReadCamerasText / ReadRigsText in colmap/src/colmap/scene/reconstruction_io_text.cc
+# and described in colmap/doc/format.rst ("rigs.txt", "cameras.txt"; COLMAP >= 3.12, pycolmap 4):
+#   cameras.txt: CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]
+#       OPENCV      = fx fy cx cy k1 k2 p1 p2
+#       FULL_OPENCV = fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6   (radial (1 + k1 r2 + k2 r4 + k3 r6) / (1 + k4 r2 + ...))
+#   rigs.txt:    RIG_ID NUM_SENSORS REF_SENSOR_TYPE REF_SENSOR_ID then, per other sensor,
+#                SENSOR_TYPE SENSOR_ID HAS_POSE [QW QX QY QZ TX TY TZ]  (sensor_from_rig, Hamilton quaternion;
+#                the reference sensor defines the rig frame: identity sensor_from_rig)
+# Pixel convention: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), OpenCV at (0, 0), so
+# cx_colmap = cx_opencv + 0.5 (same for cy); focal lengths and distortion carry over unchanged (colmap/colmap
+# issue #2587 and the FAQ entry of pull request #4566).
+_COLMAP_HEADER_CAMERAS = ("# Camera list with one line of data per camera:\n"
+                          "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
+_COLMAP_HEADER_RIGS = ("# Rig calib list with one line of data per calib:\n"
+                       "#   RIG_ID, NUM_SENSORS, REF_SENSOR_TYPE, REF_SENSOR_ID, SENSORS[] as (SENSOR_TYPE, SENSOR_ID, "
+                       "HAS_POSE, [QW, QX, QY, QZ, TX, TY, TZ])\n")
+
+
+def colmap_camera(cam: Camera) -> tuple[str, list[float]]:
+    """COLMAP model name and parameters of a camera (COLMAP pixel convention: principal point + 0.5).
+
+    No coefficients -> ``PINHOLE``; 4 or 5 with k3 = 0 -> ``OPENCV``; otherwise ``FULL_OPENCV``. ValueError
+    for what COLMAP cannot represent: a skewed K, or non-zero thin-prism (s1..s4) or tilt (tau_x, tau_y)
+    coefficients.
+    """
+    K, d = cam.K, cam.dist
+    if K[0, 1] != 0:
+        raise ValueError(f"{cam.name}: K has skew {K[0, 1]}; COLMAP's camera models have none")
+    if d.size > 8 and np.any(d[8:] != 0):
+        bad = {n: float(v) for n, v in zip(DIST_NAMES[8:], d[8:]) if v != 0}
+        raise ValueError(f"{cam.name}: COLMAP's OPENCV/FULL_OPENCV models have no thin-prism or tilt coefficients; "
+                         f"non-zero {bad}")
+    pp = [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5]
+    if d.size == 0:
+        return "PINHOLE", pp
+    full = np.zeros(8)
+    full[:min(d.size, 8)] = d[:8]
+    if d.size <= 5 and full[4] == 0:
+        return "OPENCV", pp + list(full[:4])
+    return "FULL_OPENCV", pp + list(full)
+
+
+def _quaternion_wxyz(R) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()  # scipy: scalar last
+    q = np.array([w, x, y, z])
+    return list(q if q[0] >= 0 else -q)
+
+
+def _fmt(v: float) -> str:
+    return repr(float(v))
+
+
+def write_colmap(folder, rig: Rig, *, first_camera_id: int = 1, rig_id: int = 1) -> dict:
+    """Write ``cameras.txt`` and ``rigs.txt`` of the rig into ``folder`` (created), each atomically.
+
+    Camera ids are ``first_camera_id + idx`` in rig order; one rig whose reference sensor is camera 0, the other
+    cameras posed by ``cam_from_cam0`` (COLMAP's ``sensor_from_rig``). Returns ``{camera name: camera id}``.
+    Add ``frames.txt``, ``images.txt`` and ``points3D.txt`` of your own to make a full COLMAP model.
+    """
+    folder = Path(folder)
+    lines_cam, ids = [], {}
+    for idx, cam in enumerate(rig.cameras):
+        model, params = colmap_camera(cam)
+        cid = first_camera_id + idx
+        ids[cam.name] = cid
+        lines_cam.append(" ".join([str(cid), model, str(cam.width), str(cam.height)] + [_fmt(p) for p in params]))
+    ref = rig.cameras[0]
+    sensors = []
+    for idx, cam in enumerate(rig.cameras[1:], start=1):
+        T = rig.cam_from_cam(idx, 0)
+        pose = _quaternion_wxyz(T[:3, :3]) + list(T[:3, 3])
+        sensors.append(f"CAMERA {first_camera_id + idx} 1 " + " ".join(_fmt(v) for v in pose))
+    rig_line = " ".join([str(rig_id), str(len(rig)), "CAMERA", str(ids[ref.name])] + sensors)
+    names = ", ".join(f"{n} = {i}" for n, i in ids.items())
+    with atomic_path(folder / "cameras.txt") as tmp:
+        tmp.write_text(_COLMAP_HEADER_CAMERAS + f"# Number of cameras: {len(rig)} (heartcv: {names})\n"
+                       + "\n".join(lines_cam) + "\n", encoding="utf-8")
+    with atomic_path(folder / "rigs.txt") as tmp:
+        tmp.write_text(_COLMAP_HEADER_RIGS + "# Number of rigs: 1\n" + rig_line + "\n", encoding="utf-8")
+    return ids
+
+
+# Kalibr camchain (ethz-asl/kalibr wiki, "YAML formats"): camN: camera_model pinhole, intrinsics [fu, fv, pu, pv],
+# distortion_model radtan with distortion_coeffs [k1, k2, r1, r2], resolution [w, h], rostopic, and for N >= 1
+# T_cn_cnm1 = T_c(n)_c(n-1) (takes camera n-1 coordinates to camera n). Kalibr's pixel convention is OpenCV's
+# (no 0.5 shift).
+def kalibr_camchain(rig: Rig, rostopics: dict | None = None) -> dict:
+    """The Kalibr camchain of the rig as plain data (cameras in rig order as cam0..camN)."""
+    out = {}
+    for idx, cam in enumerate(rig.cameras):
+        K, d = cam.K, cam.dist
+        if K[0, 1] != 0:
+            raise ValueError(f"{cam.name}: K has skew {K[0, 1]}; Kalibr's pinhole model has none")
+        if d.size > 4 and np.any(d[4:] != 0):
+            bad = {n: float(v) for n, v in zip(DIST_NAMES[4:], d[4:]) if v != 0}
+            raise ValueError(f"{cam.name}: Kalibr's radtan model has k1, k2, p1, p2 only; non-zero {bad} "
+                             f"(calibrate with 4 or 5 coefficients and k3 fixed at 0 for a Kalibr export)")
+        coeffs = np.zeros(4)
+        coeffs[:min(d.size, 4)] = d[:4]
+        e = {"camera_model": "pinhole", "intrinsics": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+             "distortion_model": "radtan", "distortion_coeffs": coeffs, "resolution": [cam.width, cam.height],
+             "rostopic": (rostopics or {}).get(cam.name, f"/{cam.name}/image_raw")}
+        if idx > 0:
+            e["T_cn_cnm1"] = rig.cam_from_cam(idx, idx - 1)
+        out[f"cam{idx}"] = e
+    return _plain(out)
+
+
+def write_kalibr(path, rig: Rig, rostopics: dict | None = None) -> None:
+    """Write the rig as a Kalibr camchain YAML atomically (:func:`kalibr_camchain`)."""
+    names = ", ".join(f"cam{i} = {c.name}" for i, c in enumerate(rig.cameras))
+    write_yaml(path, kalibr_camchain(rig, rostopics), f"Kalibr camchain written by heartcv {__version__} ({names})")
