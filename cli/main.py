@@ -12,6 +12,7 @@ COMMANDS = {
     "model": "cli.model:model",
     "track": "cli.track:track",
     "simulate": "cli.simulate:simulate",
+    "target": "cli.target:target",
 }
 
 
@@ -34,8 +35,8 @@ class LazyGroup(click.Group):
 def main(ctx, verbose, quiet):
     """heartcv: physics-based tracking of beating-heart surface motion.
 
-    Available: `model info`, `model simulate`, `track` (kf, ge, ukf, ekf), `simulate` (Monte-Carlo study of
-    the estimators). Planned stages: target, render, calibrate, measure, fit, report. Logs go to stderr; --json summaries to stdout.
+    Available: `target`, `model info`, `model simulate`, `track` (kf, ge, ukf, ekf), `simulate` (Monte-Carlo
+    study of the estimators). Planned stages: render, calibrate, measure, fit, report. Logs go to stderr; --json summaries to stdout.
     """
     verbosity = verbose - quiet
     logging.basicConfig(level=max(10, 30 - 10 * verbosity), format="%(levelname)s %(name)s: %(message)s",
