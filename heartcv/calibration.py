@@ -1,0 +1,185 @@
+"""Single-camera calibration from target detections, and the pieces the rig calibration shares.
+
+:func:`calibrate_intrinsics` runs ``cv2.calibrateCameraExtended`` [1]_ on the usable views of one camera, rejects
+outlier views (:func:`outlier_views`) and calibrates again until none is left. The rig calibration
+(:mod:`heartcv.calibration_rig`) starts from its results.
+
+Conventions. Reprojection RMS is OpenCV's: ``sqrt(mean over corners of |uv_measured - uv_projected|^2)`` in
+pixels (one number per corner, not per coordinate). Distortion models: 5 coefficients ``(k1, k2, p1, p2, k3)``
+(the default), 8 (rational: ``+ k4, k5, k6``) or 4 (``k3 = 0``: the models of COLMAP's ``OPENCV`` camera and
+Kalibr's ``radtan``); skew is fixed at 0. Poses follow DESIGN.md §3 (``cam_from_board``:
+``x_cam = R x_board + t``, metres).
+
+References
+----------
+.. [1] Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 2000; OpenCV
+   ``calibrateCameraExtended``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .detect import Detection
+
+__all__ = ["CalibrationError", "IntrinsicsResult", "calibrate_intrinsics", "outlier_views", "usable_view",
+           "DIST_MODELS", "MIN_VIEWS", "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
+
+DIST_MODELS = (4, 5, 8)  # (k1, k2, p1, p2) [COLMAP OPENCV, Kalibr radtan], + k3, + rational k4..k6
+MIN_VIEWS = 4            # usable views needed per camera
+OUTLIER_FACTOR = 3.0     # a view is an outlier above OUTLIER_FACTOR x the median view RMS of its camera ...
+OUTLIER_FLOOR_PX = 0.25  # ... but never below this RMS (clean data keep their slightly worse views)
+MIN_CHARUCO_CORNERS = 6
+
+
+class CalibrationError(ValueError):
+    """An expected failure of a calibration (too few views, target not found, cameras not linked).
+
+    Attributes
+    ----------
+    views_per_camera : dict or None
+        Camera name -> number of usable views, when the failure is about counts.
+    """
+
+    def __init__(self, message, views_per_camera=None):
+        super().__init__(message)
+        self.views_per_camera = views_per_camera
+
+
+@dataclass(frozen=True)
+class IntrinsicsResult:
+    """One camera's intrinsic calibration.
+
+    Attributes
+    ----------
+    K : ndarray of shape (3, 3)
+    dist : ndarray of shape (5,) or (8,)
+    rms_px : float
+        RMS over the corners of the views used.
+    per_view_rms : ndarray of shape (n_views,)
+        RMS of every view in the last calibration it took part in (rejected views: the calibration that
+        rejected them); NaN for views that were never usable.
+    used : ndarray of shape (n_views,), bool
+    rejected : ndarray of shape (n_views,), bool
+        Usable views dropped as outliers.
+    cam_from_board : ndarray of shape (n_views, 4, 4)
+        Board pose of the views used; NaN elsewhere.
+    std : ndarray of shape (4 + n_dist,)
+        Standard deviations of ``(fx, fy, cx, cy, dist...)`` (OpenCV's stdDeviationsIntrinsics).
+    """
+
+    K: np.ndarray
+    dist: np.ndarray
+    rms_px: float
+    per_view_rms: np.ndarray
+    used: np.ndarray
+    rejected: np.ndarray
+    cam_from_board: np.ndarray
+    std: np.ndarray
+
+
+def usable_view(det: Detection | None, spec) -> bool:
+    """Whether a detection can take part in a calibration: a complete chessboard, or at least
+    ``MIN_CHARUCO_CORNERS`` ChArUco corners that do not lie on one line."""
+    if det is None or len(det) == 0:
+        return False
+    if spec.type == "chessboard":
+        return len(det) == spec.n_corners
+    if len(det) < MIN_CHARUCO_CORNERS:
+        return False
+    xy = spec.object_points()[det.ids, :2]
+    s = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
+    return bool(s[1] > 0.5 * spec.square_m)
+
+
+def outlier_views(rms, *, factor=OUTLIER_FACTOR, floor_px=OUTLIER_FLOOR_PX, max_view_rms=None) -> np.ndarray:
+    """Mask of outlier views among view RMS values (n,): above ``max(factor * median, floor_px)``, or above
+    ``max_view_rms`` when given. NaN entries are never outliers."""
+    rms = np.asarray(rms, float)
+    ok = np.isfinite(rms)
+    if not ok.any():
+        return np.zeros(rms.shape, bool)
+    thr = max(factor * float(np.median(rms[ok])), floor_px)
+    if max_view_rms is not None:
+        thr = min(thr, float(max_view_rms))
+    return ok & (np.where(ok, rms, 0) > thr)
+
+
+def _flags(dist_size):
+    import cv2
+
+    if dist_size not in DIST_MODELS:
+        raise ValueError(f"dist_size: one of {DIST_MODELS} expected, got {dist_size!r}")
+    return {4: cv2.CALIB_FIX_K3, 5: 0, 8: cv2.CALIB_RATIONAL_MODEL}[dist_size]
+
+
+def _cv_calibrate(obj, img, image_size, dist_size):
+    import cv2
+
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    out = cv2.calibrateCameraExtended(obj, img, tuple(int(v) for v in image_size), None, None,
+                                      flags=_flags(dist_size), criteria=crit)
+    rms, K, dist, rvecs, tvecs, std_in, _, per_view = out
+    return (float(rms), np.asarray(K, float), np.asarray(dist, float).reshape(-1)[:dist_size], rvecs, tvecs,
+            np.asarray(std_in, float).reshape(-1), np.asarray(per_view, float).reshape(-1))
+
+
+def calibrate_intrinsics(detections, spec, image_size, *, dist_size=5, max_view_rms=None,
+                         outlier_factor=OUTLIER_FACTOR, min_views=MIN_VIEWS, name="camera") -> IntrinsicsResult:
+    """Intrinsics of one camera from its detections, with outlier views rejected.
+
+    Parameters
+    ----------
+    detections : sequence of Detection or None, length n_views
+    spec : heartcv.targets.TargetSpec
+    image_size : (int, int)
+        ``(width, height)`` in pixels.
+    dist_size : {4, 5, 8}
+        Distortion model (module docstring).
+    max_view_rms : float, optional
+        Views with a larger RMS (px) are rejected whatever the median.
+    outlier_factor : float
+        Views above ``max(outlier_factor * median, OUTLIER_FLOOR_PX)`` are rejected, and the camera is
+        calibrated again, until no view is rejected.
+    min_views : int
+        Fewer usable views (before or after rejection) raise :class:`CalibrationError`.
+
+    Returns
+    -------
+    IntrinsicsResult
+    """
+    import cv2
+
+    n_views = len(detections)
+    usable = np.array([usable_view(d, spec) for d in detections], bool)
+    if usable.sum() < min_views:
+        raise CalibrationError(f"{name}: {int(usable.sum())} usable views, at least {min_views} needed",
+                               {name: int(usable.sum())})
+    obj_all = spec.object_points().astype(np.float32)
+    used = usable.copy()
+    rejected = np.zeros(n_views, bool)
+    per_view = np.full(n_views, np.nan)
+    for _ in range(10):
+        idx = np.flatnonzero(used)
+        obj = [obj_all[detections[i].ids] for i in idx]
+        img = [detections[i].uv.astype(np.float32) for i in idx]
+        rms, K, dist, rvecs, tvecs, std_in, pv = _cv_calibrate(obj, img, image_size, dist_size)
+        per_view[idx] = pv
+        bad = outlier_views(pv, factor=outlier_factor, max_view_rms=max_view_rms)
+        if not bad.any():
+            break
+        rejected[idx[bad]] = True
+        used[idx[bad]] = False
+        if used.sum() < min_views:
+            raise CalibrationError(
+                f"{name}: {int(used.sum())} usable views left after rejecting {int(rejected.sum())} outlier "
+                f"views (RMS above the threshold), at least {min_views} needed", {name: int(used.sum())})
+    poses = np.full((n_views, 4, 4), np.nan)
+    for k, i in enumerate(idx):
+        poses[i] = np.eye(4)
+        poses[i, :3, :3] = cv2.Rodrigues(np.asarray(rvecs[k], float))[0]
+        poses[i, :3, 3] = np.asarray(tvecs[k], float).reshape(3)
+    std = np.concatenate([std_in[:4], std_in[4:4 + dist_size]])
+    return IntrinsicsResult(K, dist, rms, per_view, used, rejected, poses, std)
