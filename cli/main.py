@@ -13,6 +13,7 @@ COMMANDS = {
     "track": "cli.track:track",
     "simulate": "cli.simulate:simulate",
     "target": "cli.target:target",
+    "calibrate": "cli.calibrate:calibrate",
 }
 
 
