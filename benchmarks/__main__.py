@@ -1,4 +1,4 @@
-"""``python -m benchmarks {model,discretise,kf,estimators,all} [--json PATH] [--quick]``."""
+"""``python -m benchmarks {model,discretise,kf,estimators,render,all} [--json PATH] [--quick]``."""
 
 from __future__ import annotations
 
@@ -12,9 +12,10 @@ import time
 from ._harness import environment
 from .estimators import bench_estimators
 from .model import SECTIONS as _MODEL_SECTIONS, blas_report
+from .render import bench_render
 
-SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators}
-ORDER = ("model", "discretise", "kf", "estimators")
+SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators, "render": bench_render}
+ORDER = ("model", "discretise", "kf", "estimators", "render")
 
 
 def _json_default(o):

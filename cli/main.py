@@ -14,6 +14,7 @@ COMMANDS = {
     "simulate": "cli.simulate:simulate",
     "target": "cli.target:target",
     "calibrate": "cli.calibrate:calibrate",
+    "render": "cli.render:render",
 }
 
 
@@ -36,8 +37,8 @@ class LazyGroup(click.Group):
 def main(ctx, verbose, quiet):
     """heartcv: physics-based tracking of beating-heart surface motion.
 
-    Available: `target`, `model info`, `model simulate`, `track` (kf, ge, ukf, ekf), `simulate` (Monte-Carlo
-    study of the estimators). Planned stages: render, calibrate, measure, fit, report. Logs go to stderr; --json summaries to stdout.
+    Available: `target`, `render`, `calibrate`, `model info`, `model simulate`, `track` (kf, ge, ukf, ekf),
+    `simulate` (Monte-Carlo study of the estimators). Planned stages: measure, fit, report. Logs go to stderr; --json summaries to stdout.
     """
     verbosity = verbose - quiet
     logging.basicConfig(level=max(10, 30 - 10 * verbosity), format="%(levelname)s %(name)s: %(message)s",

@@ -620,3 +620,138 @@ def write_kalibr(path, rig: Rig, rostopics: dict | None = None) -> None:
     """Write the rig as a Kalibr camchain YAML atomically (:func:`kalibr_camchain`)."""
     names = ", ".join(f"cam{i} = {c.name}" for i, c in enumerate(rig.cameras))
     write_yaml(path, kalibr_camchain(rig, rostopics), f"Kalibr camchain written by heartcv {__version__} ({names})")
+
+
+# =====================================================================================================================
+# -- scenes and rendered sequences (heartcv.scene v1, heartcv.render_truth v1; the renderer's section)
+# =====================================================================================================================
+SCENE_FORMAT = ("heartcv.scene", 1)
+RENDER_TRUTH_FORMAT = ("heartcv.render_truth", 1)
+__all__ += ["SCENE_FORMAT", "RENDER_TRUTH_FORMAT", "read_scene", "scene_file_path", "atomic_folder", "encode_png",
+            "write_inputs_csv", "read_inputs_csv", "write_render_truth", "read_render_truth"]
+
+
+def read_scene(path):
+    """Read and validate a scene file (``heartcv.render.scene``); HeartcvIOError naming the file and the field."""
+    from .render.scene import SceneError, scene_from_dict
+
+    d = read_yaml(path, "scene file")
+    _check_format(path, d, SCENE_FORMAT)
+    try:
+        return scene_from_dict(d)
+    except SceneError as exc:
+        raise HeartcvIOError(path, str(exc)) from None
+
+
+def scene_file_path(scene_path, relative) -> Path:
+    """A path named in a scene file, resolved against the scene file's folder (absolute paths unchanged)."""
+    p = Path(os.path.expanduser(str(relative)))
+    return p if p.is_absolute() else Path(scene_path).resolve().parent / p
+
+
+@contextlib.contextmanager
+def atomic_folder(path):
+    """Yield a hidden temporary folder beside ``path``; only if the block succeeds is it renamed to ``path``
+    (an existing folder of that name is replaced as a whole). On failure the temporary folder is removed, so a
+    half-written folder never appears under the final name."""
+    import shutil
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        yield tmp
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)
+        old = None
+        if path.exists():
+            if not path.is_dir():
+                raise HeartcvIOError(path, "exists and is not a folder; not replaced")
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+            os.rmdir(old)
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def encode_png(image) -> bytes:
+    """PNG bytes of an 8- or 16-bit image, RGB (H, W, 3) or gray (H, W) (picklable: used by render workers)."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img[..., ::-1]  # RGB -> OpenCV's BGR
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise ValueError(f"OpenCV could not encode an image of shape {img.shape} as PNG")
+    return buf.tobytes()
+
+
+def write_inputs_csv(path, columns, values, header=None) -> None:
+    """``inputs.csv`` of a sequence folder: optional ``#`` comment lines, one header row of column names, then
+    one row per frame (``repr`` precision). Written atomically."""
+    values = np.asarray(values, float)
+    if values.ndim != 2 or values.shape[1] != len(columns):
+        raise ValueError(f"inputs: shape (K, {len(columns)}) expected, got {values.shape}")
+    lines = [f"# {h}" for h in (header or "").splitlines()]
+    lines.append(",".join(columns))
+    lines += [",".join(repr(float(v)) for v in row) for row in values]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def read_inputs_csv(path) -> tuple[list, np.ndarray]:
+    """``(columns, values (K, n))`` of an ``inputs.csv`` (comment lines skipped)."""
+    path = Path(path)
+    try:
+        rows = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
+    except OSError as exc:
+        raise HeartcvIOError(path, f"cannot read inputs file ({exc.strerror})") from None
+    if not rows:
+        raise HeartcvIOError(path, "empty inputs file (a header row of column names expected)")
+    columns = [c.strip() for c in rows[0].split(",")]
+    try:
+        values = np.array([[float(v) for v in r.split(",")] for r in rows[1:]], float).reshape(-1, len(columns))
+    except ValueError as exc:
+        raise HeartcvIOError(path, f"not a numeric table with columns {columns}: {exc}") from None
+    return columns, values
+
+
+def write_render_truth(path, arrays: dict, meta: dict) -> None:
+    """The truth of a render (``heartcv.render_truth`` v1): arrays plus a ``meta_json`` entry, written
+    atomically with ``numpy.savez_compressed`` (layout: docs/formats.md, render truth)."""
+    import json
+
+    meta = dict(meta)
+    meta.update({"format": RENDER_TRUTH_FORMAT[0], "format_version": RENDER_TRUTH_FORMAT[1],
+                 "heartcv_version": __version__})
+    payload = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
+    payload["meta_json"] = np.frombuffer(json.dumps(_plain(meta), sort_keys=True).encode(), dtype=np.uint8)
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **payload)
+
+
+def read_render_truth(path) -> tuple[dict, dict]:
+    """``(arrays, meta)`` of a render truth file; HeartcvIOError for a missing, corrupt or foreign file."""
+    import json
+    import zipfile
+
+    path = Path(path)
+    if not path.is_file():
+        raise HeartcvIOError(path, "no such render truth file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+        meta = json.loads(bytes(data.pop("meta_json")).decode())
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
+        raise HeartcvIOError(path, f"not a readable render truth file ({exc})") from None
+    if meta.get("format") != RENDER_TRUTH_FORMAT[0] or meta.get("format_version") != RENDER_TRUTH_FORMAT[1]:
+        raise HeartcvIOError(path, f"{RENDER_TRUTH_FORMAT[0]} v{RENDER_TRUTH_FORMAT[1]} expected, got "
+                                   f"{meta.get('format')!r} v{meta.get('format_version')!r}")
+    return data, meta

@@ -1,0 +1,216 @@
+"""``heartcv render calibration|sequence``: render a scene file's calibration set or image sequence."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+import time
+
+import click
+
+from .options import BadInput, emit_json, json_opt, progress
+
+log = logging.getLogger(__name__)
+
+_SCENE = click.argument("scene_file", type=click.Path(exists=True, dir_okay=False))
+_OUT = click.option("-o", "--output", type=click.Path(file_okay=False), required=True,
+                    help="Folder to write (replaced as a whole once complete).")
+_SEED = click.option("--seed", type=click.IntRange(min=0), default=None,
+                     help="Seed of the render (default: the scene file's `seed`).")
+_WORKERS = click.option("--workers", type=click.IntRange(min=1), default=None,
+                        help="Worker processes (default: all cores).")
+
+
+@click.group()
+def render():
+    """Render a SCENE.yaml: calibration images of the target, or the moving phantom (docs/cli.md)."""
+
+
+def _load_scene(scene_file, seed):
+    from dataclasses import replace
+
+    from heartcv.io import HeartcvIOError, read_scene
+
+    try:
+        scene = read_scene(scene_file)
+    except HeartcvIOError as exc:
+        raise BadInput(str(exc)) from None
+    return scene if seed is None else replace(scene, seed=seed)
+
+
+def _require_embree():
+    from heartcv.render.raycast import embree_available
+
+    if not embree_available():
+        from .options import StageFailed
+
+        raise StageFailed("the renderer needs Embree through the embreex package (pip install embreex), "
+                          "which is not importable")
+
+
+def _workers(n):
+    from heartcv.render.parallel import default_workers
+
+    return n or default_workers()
+
+
+def _write_frames(folder, names, results, label, ctx, count):
+    """Write each result's encoded images to ``folder/<camera>/<k:06d>.png``; returns per result its ``rays``,
+    ``timings`` and, for sequences, its instrument mask bit-packed along the rows (the images are not kept)."""
+    import numpy as np
+
+    kept = []
+    for name in names:
+        (folder / name).mkdir()
+    with progress(results, label, length=count, verbosity=ctx.obj.get("verbosity", 0) if ctx.obj else 0) as bar:
+        for res in bar:
+            for name, data in zip(names, res.images):
+                (folder / name / f"{res.index:06d}.png").write_bytes(data)
+            mask = getattr(res, "instrument_mask", None)
+            kept.append({"rays": res.rays, "timings": getattr(res, "timings", {}),
+                         "mask": None if mask is None else np.packbits(mask, axis=-1)})
+    return kept
+
+
+@render.command()
+@_SCENE
+@_OUT
+@_SEED
+@_WORKERS
+@click.option("--views", type=click.IntRange(min=1), default=None, help="Number of board views (default: the "
+              "scene's calibration.views).")
+@json_opt
+@click.pass_context
+def calibration(ctx, scene_file, output, seed, workers, views, as_json):
+    """Render the calibration target at the scene's seeded poses: OUTPUT/cam0/000000.png ... (one file name per
+    view in every camera folder), truth.npz (true cameras and board poses) and rig_truth.yaml."""
+    from dataclasses import replace
+
+    from heartcv.io import (HeartcvIOError, atomic_folder, encode_png, file_hash, read_target, scene_file_path,
+                            write_render_truth, write_rig)
+    from heartcv.render.board import calibration_truth, prepare_calibration, render_calibration
+    from heartcv.render.scene import DEFAULT_TARGET
+    from heartcv.targets import TargetSpec
+
+    scene = _load_scene(scene_file, seed)
+    if views is not None:
+        scene = replace(scene, calibration=replace(scene.calibration, views=views))
+    target_path = None
+    try:
+        if scene.calibration.target is None:
+            target = TargetSpec.from_dict(DEFAULT_TARGET)
+        else:
+            target_path = scene_file_path(scene_file, scene.calibration.target)
+            target = read_target(target_path)
+    except HeartcvIOError as exc:
+        raise BadInput(f"{scene_file}: calibration.target: {exc}") from None
+    n_workers = _workers(workers)
+    t0 = time.perf_counter()
+    try:
+        setup = prepare_calibration(scene, target, workers=n_workers)
+    except ValueError as exc:
+        raise BadInput(f"{scene_file}: {exc}") from None
+    names = [c.name for c in setup.rig.cameras]
+    with atomic_folder(output) as tmp:
+        res = _write_frames(tmp, names, render_calibration(setup, workers=n_workers, encode=encode_png),
+                            "rendering calibration views", ctx, setup.n_views)
+        arrays, meta = calibration_truth(setup)
+        meta.update({"producer": "heartcv render calibration", "scene_file": str(scene_file),
+                     "inputs_hash": {"scene": file_hash(scene_file)} | (
+                         {"target": file_hash(target_path)} if target_path else {}),
+                     "file_names": [f"{i:06d}.png" for i in range(setup.n_views)]})
+        write_render_truth(tmp / "truth.npz", arrays, meta)
+        write_rig(tmp / "rig_truth.yaml", setup.rig)
+        (tmp / "scene.yaml").write_bytes(Path(scene_file).read_bytes())
+    wall = time.perf_counter() - t0
+    summary = {"output": output, "views": setup.n_views, "partial_views": int(setup.partial.sum()),
+               "cameras": names, "image_size": [setup.rig.cameras[0].width, setup.rig.cameras[0].height],
+               "target": target.name, "seed": scene.seed, "rays": int(sum(r["rays"] for r in res)), "wall_s": wall,
+               "corners_visible": arrays["corners_visible"].sum(axis=2).tolist()}
+    if as_json:
+        emit_json(summary)
+    else:
+        log.warning("wrote %s (%d views x %d cameras) in %.1f s", output, setup.n_views, len(names), wall)
+
+
+@render.command()
+@_SCENE
+@_OUT
+@_SEED
+@_WORKERS
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Render only the first N frames (default: all of motion.duration_s).")
+@json_opt
+@click.pass_context
+def sequence(ctx, scene_file, output, seed, workers, frames, as_json):
+    """Render the moving phantom: OUTPUT/cam0/000000.png ... per frame, inputs.csv (known inputs per frame),
+    truth.npz (true parameters, mesh and vertex trajectories, camera truth, instrument masks), rig_truth.yaml."""
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from heartcv.io import (HeartcvIOError, atomic_folder, encode_png, file_hash, scene_file_path,
+                            write_inputs_csv, write_render_truth, write_rig)
+    from heartcv.render.sequence import inputs_table, prepare_sequence, render_sequence, sequence_truth
+    from tracker.config import ConfigError
+    from tracker.io import FileFormatError, read_model
+
+    scene = _load_scene(scene_file, seed)
+    _require_embree()
+    model_path = scene_file_path(scene_file, scene.motion.model)
+    try:
+        cfg = read_model(model_path)
+    except (ConfigError, FileFormatError) as exc:
+        raise BadInput(f"{scene_file}: motion.model: {exc}") from None
+    n_workers = _workers(workers)
+    t0 = time.perf_counter()
+    try:
+        with threadpool_limits(1):
+            setup = prepare_sequence(scene, cfg, workers=n_workers)
+    except ValueError as exc:
+        raise BadInput(f"{scene_file}: {exc}") from None
+    except FloatingPointError as exc:
+        from .options import StageFailed
+
+        raise StageFailed(f"{scene_file}: truth simulation: {exc}") from None
+    t_prep = time.perf_counter() - t0
+    count = setup.n_frames if frames is None else min(frames, setup.n_frames)
+    names = [c.name for c in setup.rig.cameras]
+    with atomic_folder(output) as tmp:
+        t1 = time.perf_counter()
+        res = _write_frames(tmp, names, render_sequence(setup, frames=range(count), workers=n_workers,
+                                                        encode=encode_png), "rendering frames", ctx, count)
+        t_render = time.perf_counter() - t1
+        masks = None
+        if setup.instrument is not None:
+            masks = np.stack([r["mask"] for r in res])
+        arrays, meta = sequence_truth(setup, masks)
+        if count < setup.n_frames:  # keep the truth of the rendered frames only
+            for key in ("times", "theta", "inputs", "translation", "vertex_positions", "point_positions",
+                        "instrument_tip", "instrument_present"):
+                if key in arrays:
+                    arrays[key] = arrays[key][:count]
+        meta.update({"producer": "heartcv render sequence", "scene_file": str(scene_file),
+                     "inputs_hash": {"scene": file_hash(scene_file), "model": file_hash(model_path)},
+                     "file_names": [f"{k:06d}.png" for k in range(count)]})
+        write_render_truth(tmp / "truth.npz", arrays, meta)
+        cols, vals = inputs_table(setup)
+        write_inputs_csv(tmp / "inputs.csv", cols, vals[:count],
+                         "heartcv render sequence: known inputs at the frame times (docs/formats.md, inputs.csv)\n"
+                         "time_s: s from the first frame; *_pa: Pa; respiration_*_m: m, patch frame")
+        write_rig(tmp / "rig_truth.yaml", setup.rig)
+        (tmp / "scene.yaml").write_bytes(Path(scene_file).read_bytes())
+    wall = time.perf_counter() - t0
+    timings = {k: float(sum(r["timings"].get(k, 0.0) for r in res)) for k in res[0]["timings"]} if res else {}
+    pos = arrays["point_positions"]
+    summary = {"output": output, "frames": count, "cameras": names, "seed": scene.seed,
+               "image_size": [setup.rig.cameras[0].width, setup.rig.cameras[0].height],
+               "duration_s": float(setup.frame_times[count - 1]), "frame_rate_hz": scene.motion.frame_rate_hz,
+               "triangles": int(setup.surface.phantom.faces.shape[0]), "vertices": int(setup.surface.phantom.n_vertices),
+               "rays": int(sum(r["rays"] for r in res)), "prepare_s": t_prep, "render_s": t_render, "wall_s": wall,
+               "frames_per_s": count / t_render if t_render > 0 else None, "worker_timings_s": timings,
+               "peak_displacement_m": float(np.linalg.norm(pos - pos[:1], axis=2).max()),
+               "instrument": setup.instrument is not None}
+    if as_json:
+        emit_json(summary)
+    else:
+        log.warning("wrote %s (%d frames x %d cameras) in %.1f s", output, count, len(names), wall)

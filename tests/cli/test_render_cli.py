@@ -1,0 +1,160 @@
+"""CLI: heartcv render calibration / render sequence (CliRunner, exit codes, artifacts read back)."""
+
+from dataclasses import replace
+import json
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from cli.main import main
+from heartcv.io import list_image_folder, read_image, read_inputs_csv, read_render_truth, read_rig
+from tests.conftest import SAMPLES
+from tests.heartcv.render_scenes import scene_dict, write_truth_model
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    return write_truth_model(tmp_path_factory.mktemp("render_cli") / "truth.yaml")
+
+
+@pytest.fixture
+def runner():
+    return CliRunner()
+
+
+def _scene(tmp_path, model_file, **sections):
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(scene_dict(model_file, **sections)))
+    return str(path)
+
+
+def _json(result):
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def test_render_calibration(runner, tmp_path, model_file):
+    scene = _scene(tmp_path, model_file, calibration={"views": 2, "partial_fraction": 0.5,
+                                                      "target": str(SAMPLES.parent / "calibration_targets" /
+                                                                    "charuco_11x8_12mm.yaml")})
+    out = tmp_path / "calib"
+    summary = _json(runner.invoke(main, ["render", "calibration", scene, "-o", str(out), "--workers", "1",
+                                         "--json"]))
+    assert summary["views"] == 2 and summary["partial_views"] == 1 and summary["cameras"] == ["cam0", "cam1", "cam2"]
+    names = [[p.name for p in list_image_folder(out / c)] for c in summary["cameras"]]
+    assert names[0] == names[1] == names[2] == ["000000.png", "000001.png"]
+    img = read_image(out / "cam1" / "000001.png", expected_size=(480, 270))
+    assert img.std() > 10
+    arrays, meta = read_render_truth(out / "truth.npz")
+    assert meta["kind"] == "calibration" and meta["file_names"] == names[0] and meta["target"]["name"]
+    assert arrays["cam_from_board"].shape == (2, 3, 4, 4) and arrays["corners_uv"].shape[:2] == (2, 3)
+    rig = read_rig(out / "rig_truth.yaml")
+    assert np.allclose(np.stack([c.K for c in rig.cameras]), arrays["K"])
+    assert np.allclose(rig.cameras[2].cam_from_rig, arrays["cam_from_world"][2])
+    assert (out / "scene.yaml").read_text() == open(scene).read()
+
+
+def test_render_sequence(runner, tmp_path, model_file):
+    scene = _scene(tmp_path, model_file, seed=3,
+                   instrument={"enabled": True, "window_s": [0.09, 1.0], "enter_s": 0.05},
+                   motion={"respiration": True}, motion_blur={"subsamples": 2, "exposure_fraction": 0.5})
+    out = tmp_path / "seq"
+    summary = _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "4", "--json"]))
+    assert summary["frames"] == 4 and summary["instrument"] and summary["seed"] == 3
+    for cam in summary["cameras"]:
+        files = list_image_folder(out / cam)
+        assert [p.name for p in files] == [f"{k:06d}.png" for k in range(4)]
+        assert read_image(files[0], "color").shape == (270, 480, 3)
+    cols, vals = read_inputs_csv(out / "inputs.csv")
+    assert cols == ["time_s", "pressure_pa", "respiration_x_m", "respiration_y_m", "respiration_z_m"]
+    assert vals.shape == (4, 5) and np.allclose(vals[:, 0], np.arange(4) / 30)
+    assert (out / "inputs.csv").read_text().startswith("# heartcv render sequence")
+    arrays, meta = read_render_truth(out / "truth.npz")
+    assert meta["kind"] == "sequence" and meta["seed"] == 3 and meta["camera_names"] == summary["cameras"]
+    V = arrays["reference_vertices"].shape[0]
+    assert arrays["vertex_positions"].shape == (4, V, 3) and arrays["theta"].shape == (4, 5)
+    assert np.allclose(arrays["inputs"][:, 0], vals[:, 1]) and np.allclose(arrays["translation"], vals[:, 2:])
+    mask = np.unpackbits(arrays["instrument_mask"], axis=-1)[..., :480].astype(bool)
+    assert mask.shape == (4, 3, 270, 480) and not mask[:3].any() and mask[3].any()
+    assert list(arrays["instrument_present"]) == [False, False, False, True]
+
+
+def test_render_sequence_same_seed_same_images(runner, tmp_path, model_file):
+    scene = _scene(tmp_path, model_file)
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out, workers in ((a, "1"), (b, "2")):
+        _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "2", "--workers",
+                                   workers, "--json"]))
+    for name in ("cam0/000001.png", "cam2/000000.png", "inputs.csv"):
+        assert (a / name).read_bytes() == (b / name).read_bytes()
+
+
+@pytest.mark.parametrize("patch, field", [
+    ({"phantom": {"textur": {}}}, "phantom.textur"),
+    ({"noise": {"read_noise_e": -1}}, "noise.read_noise_e"),
+    ({"motion": {"frame_rate_hz": 0}}, "motion.frame_rate_hz"),
+])
+def test_bad_scene_field_exits_2_naming_it(runner, tmp_path, model_file, patch, field):
+    scene = _scene(tmp_path, model_file, **patch)
+    for cmd in ("sequence", "calibration"):
+        result = runner.invoke(main, ["render", cmd, scene, "-o", str(tmp_path / "out")])
+        assert result.exit_code == 2, result.output
+        assert field in result.stderr and "Traceback" not in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_model_or_target_exits_2(runner, tmp_path, model_file):
+    scene = _scene(tmp_path, tmp_path / "nope.yaml")
+    result = runner.invoke(main, ["render", "sequence", scene, "-o", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "motion.model" in result.stderr
+    scene = _scene(tmp_path, model_file, calibration={"target": "missing_target.yaml"})
+    result = runner.invoke(main, ["render", "calibration", scene, "-o", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "calibration.target" in result.stderr
+
+
+def test_output_folder_is_replaced_only_when_complete(runner, tmp_path, model_file, monkeypatch):
+    scene = _scene(tmp_path, model_file)
+    out = tmp_path / "seq"
+    out.mkdir()
+    (out / "old.txt").write_text("previous run")
+
+    import heartcv.render.sequence as seq
+
+    real = seq.render_frame
+
+    def failing(setup, k, **kw):
+        if k == 1:
+            raise RuntimeError("disk full")
+        return real(setup, k, **kw)
+
+    monkeypatch.setattr(seq, "render_frame", failing)
+    result = runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "3", "--workers", "1"])
+    assert result.exit_code != 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml", "seq"]  # no temporary folder left
+    assert [p.name for p in out.iterdir()] == ["old.txt"]  # the previous folder is untouched
+    monkeypatch.setattr(seq, "render_frame", real)
+    _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "1", "--json"]))
+    assert not (out / "old.txt").exists() and (out / "truth.npz").is_file()
+
+
+@pytest.mark.parametrize("name", ["phantom", "myocardium"])
+def test_sample_scenes_are_valid(name):
+    """The shipped scenes validate, their model and target files load and their phantom builds."""
+    from heartcv.io import read_scene, read_target, scene_file_path
+    from heartcv.render.phantom import build_phantom
+    from tracker.io import read_model
+
+    path = SAMPLES / name / "scene.yaml"
+    scene = read_scene(path)
+    cfg = read_model(scene_file_path(path, scene.motion.model))
+    assert cfg.geometry.grid == (31, 21, 4) and cfg.reduction is not None  # a fine truth mesh
+    target = read_target(scene_file_path(path, scene.calibration.target))
+    assert target.type == "charuco"
+    ph = build_phantom(cfg.geometry, scene.phantom)
+    assert ph.trimesh().is_watertight
+    assert scene.motion.stiffness_amplitude > 0
+    if name == "phantom":  # the coarse estimator model beside the scene has the same patch, fewer nodes
+        coarse = read_model(path.parent / "model.yaml")
+        assert replace(coarse.geometry, grid=cfg.geometry.grid) == cfg.geometry and coarse.reduction is None
