@@ -99,13 +99,8 @@ def ge_predict(prior: GaussianState, n_param: int, nodes, weights,
     mu = prior.mean
     n = mu.size
     n_l = n - M
-    nodes = np.asarray(nodes, float)
-    w = np.asarray(weights, float).reshape(-1)
+    nodes, w = _check_nodes(nodes, weights, M)
     L = w.size
-    if nodes.shape != (L, M):
-        raise ValueError(f"nodes: shape ({L}, {M}) expected, got {nodes.shape}")
-    if (w <= 0).any() or abs(w.sum() - 1) > 1e-12:
-        raise ValueError("weights: positive and summing to 1 expected (variants A or B)")
     Q_n = np.asarray(Q_n, float)
     Q_l = np.asarray(Q_l, float)
     if Q_n.shape != (M, M) or Q_l.shape != (n_l, n_l):
@@ -123,6 +118,16 @@ def ge_predict(prior: GaussianState, n_param: int, nodes, weights,
     U = (A @ split.R_cond) * sw[:, None, None]  # (L, n_l, n_l): sqrt(w_i) A_i R
     Wm = np.concatenate(list(U), axis=1)  # (n_l, L n_l)
     return _assemble(nodes, w, y, Wm @ Wm.T, Q_n, Q_l)
+
+
+def _check_nodes(nodes, weights, M):
+    nodes = np.asarray(nodes, float)
+    w = np.asarray(weights, float).reshape(-1)
+    if nodes.shape != (w.size, M):
+        raise ValueError(f"nodes: shape ({w.size}, {M}) expected, got {nodes.shape}")
+    if (w <= 0).any() or abs(w.sum() - 1) > 1e-12:
+        raise ValueError("weights: positive and summing to 1 expected (variants A or B)")
+    return nodes, w
 
 
 def _assemble(nodes, w, y, expected_sandwich, Q_n, Q_l) -> GaussianState:
@@ -164,13 +169,8 @@ def ge_predict_family(prior: GaussianState, n_param: int, nodes, weights, thetas
     M = n_param
     mu = prior.mean
     n_l = mu.size - M
-    nodes = np.asarray(nodes, float)
-    w = np.asarray(weights, float).reshape(-1)
+    nodes, w = _check_nodes(nodes, weights, M)
     L = w.size
-    if nodes.shape != (L, M):
-        raise ValueError(f"nodes: shape ({L}, {M}) expected, got {nodes.shape}")
-    if (w <= 0).any() or abs(w.sum() - 1) > 1e-12:
-        raise ValueError("weights: positive and summing to 1 expected (variants A or B)")
     split = split or conditional_split(prior, M, factor=False)
     m_i = mu[M:] + (nodes - mu[:M]) @ split.gain_T
     y, sandwich = family.propagate_and_sandwich(thetas, m_i, w, split.C_cond, u0, u1)

@@ -30,7 +30,7 @@ from .measurements import EstimateSet, MeasurementSet
 from .model import PatchModel
 from .params import NAMES, ParameterSpace
 from .sampling import sample
-from .tracking import EstimationDiverged, ObservedPoints, _block_diag_R, locate_points
+from .tracking import EstimationDiverged, ObservedPoints, _block_diag_R, frame_interval, locate_points
 from .transition import TransitionFamily
 from .truncation import SKIP_SIGMA, truncate_box
 
@@ -364,10 +364,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     u = meas.input_columns(model.input_names)
     trans = meas.translation()
     K = meas.n_frames
-    dts = np.diff(meas.times)
-    dt = float(np.median(dts)) if K > 1 else model.config.dt
-    if K > 1 and np.abs(dts - dt).max() > 1e-6 * dt:
-        raise ValueError("times: the joint estimators need a constant frame interval")
+    dt = frame_interval(model, meas)
     prior = joint_prior(model, u[0], theta0, prior_std)
     space = prior.space
     M = space.dim

@@ -84,6 +84,18 @@ def locate_points(model: PatchModel, meas: MeasurementSet, *, max_depth=None) ->
     return ObservedPoints(keep, obs, np.flatnonzero(~inside))
 
 
+def frame_interval(model: PatchModel, meas: MeasurementSet) -> float:
+    """The constant frame interval of a measurement set (the model's for a single frame); ValueError if the
+    frame times are not equally spaced to 1e-6 relative."""
+    dts = np.diff(meas.times)
+    if dts.size == 0:
+        return model.config.dt
+    dt = float(np.median(dts))
+    if np.abs(dts - dt).max() > 1e-6 * dt:
+        raise ValueError("times: the estimators need a constant frame interval")
+    return dt
+
+
 def _block_diag_R(cov_k: np.ndarray) -> np.ndarray:
     """Block-diagonal R (3P, 3P) of per-point covariances (P, 3, 3); unseen points get an identity block
     (their rows are dropped by the update anyway)."""
@@ -103,10 +115,7 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
     u = meas.input_columns(model.input_names)
     trans = meas.translation()
     K = meas.n_frames
-    dts = np.diff(meas.times)
-    dt = float(np.median(dts)) if K > 1 else model.config.dt
-    if K > 1 and np.abs(dts - dt).max() > 1e-6 * dt:
-        raise ValueError("times: the Kalman filter needs a constant frame interval")
+    dt = frame_interval(model, meas)
     sysd = model.system(theta, dt)
     Q = model.process_noise(theta, dt)
     n = model.state_dim
