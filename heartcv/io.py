@@ -17,6 +17,7 @@ append their own clearly delimited sections at the end.
 from __future__ import annotations
 
 import contextlib
+from dataclasses import dataclass
 import hashlib
 import os
 from pathlib import Path
@@ -35,6 +36,8 @@ __all__ = [
     "TARGET_FORMAT", "read_target", "write_target", "write_board_image",
     "RIG_FORMAT", "DIST_NAMES", "rig_to_dict", "rig_from_dict", "read_rig", "write_rig",
     "write_colmap", "colmap_camera", "write_kalibr", "kalibr_camchain",
+    "VIDEO_SUFFIXES", "FrameSource", "open_frame_source", "FrameReader", "read_timestamps", "read_mask",
+    "read_inputs_csv_columns",
 ]
 
 
@@ -755,3 +758,268 @@ def read_render_truth(path) -> tuple[dict, dict]:
         raise HeartcvIOError(path, f"{RENDER_TRUTH_FORMAT[0]} v{RENDER_TRUTH_FORMAT[1]} expected, got "
                                    f"{meta.get('format')!r} v{meta.get('format_version')!r}")
     return data, meta
+
+
+# =====================================================================================================================
+# Image sequences: one folder of images or one video per camera (heartcv measure; docs/formats.md §11.2, §13)
+# =====================================================================================================================
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv", ".webm")
+
+
+@dataclass(frozen=True)
+class FrameSource:
+    """The cameras and instants of a recorded or rendered sequence folder.
+
+    Attributes
+    ----------
+    folder : Path
+    kind : {'images', 'video'}
+    camera_names : tuple of str          sub-folder names (images) or video stems, in natural order
+    frame_names : tuple of str           instants: file stems shared across cameras (images) or ``frameNNNNNN``
+    files : tuple                        per camera, per instant, the image Path or None where that camera has
+                                         no file for the instant (images); per camera ``(video path,)`` (video)
+    fps : float or None                  the videos' frame rate when their containers state one
+    """
+
+    folder: Path
+    kind: str
+    camera_names: tuple
+    frame_names: tuple
+    files: tuple
+    fps: float | None = None
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_names)
+
+    @property
+    def n_cameras(self) -> int:
+        return len(self.camera_names)
+
+    def missing(self) -> list:
+        """``[(camera name, frame name)]`` of the instants a camera has no image for."""
+        if self.kind != "images":
+            return []
+        return [(c, n) for c, fs in zip(self.camera_names, self.files) for n, f in zip(self.frame_names, fs)
+                if f is None]
+
+
+def _camera_entries(folder: Path):
+    subdirs = sorted((p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")),
+                     key=lambda p: natural_key(p.name))
+    cams = [(d.name, list_image_folder(d)) for d in subdirs]
+    cams = [(n, fs) for n, fs in cams if fs]
+    videos = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES),
+                    key=lambda p: natural_key(p.name))
+    if cams and videos:
+        raise HeartcvIOError(folder, f"holds both image folders ({', '.join(c[0] for c in cams)}) and videos "
+                                     f"({', '.join(v.name for v in videos)}); one kind expected")
+    return cams, videos
+
+
+def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1) -> FrameSource:
+    """List the cameras and instants of a sequence folder.
+
+    Parameters
+    ----------
+    folder : path
+        One sub-folder of images per camera (the same file stem in two folders is the same instant) or one
+        video file per camera (the same frame index is the same instant).
+    cameras : sequence of str, optional
+        Use these cameras, in this order (e.g. the rig file's names); default: all, in natural name order.
+    max_missing_fraction : float
+        A camera may lack an image for at most this fraction of the instants (each such image is reported by
+        :meth:`FrameSource.missing` and read as missing); more, and the cameras are taken to have different
+        frame counts, which is an error.
+
+    Raises
+    ------
+    HeartcvIOError
+        Not a folder, fewer than two cameras, a named camera absent, videos that cannot be opened, or cameras
+        with different frame counts (the counts are named).
+    """
+    import cv2
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise HeartcvIOError(folder, "no such folder" if not folder.exists() else "not a folder")
+    cams, videos = _camera_entries(folder)
+    entries = [(n, fs) for n, fs in cams] if cams else [(v.stem, [v]) for v in videos]
+    found = [e[0] for e in entries]
+    if cameras is not None:
+        missing = [c for c in cameras if c not in found]
+        if missing:
+            raise HeartcvIOError(folder, f"no images or video for camera(s) {missing}; found {found or 'none'}")
+        entries = [next(e for e in entries if e[0] == c) for c in cameras]
+    if len(entries) < 2:
+        raise HeartcvIOError(folder, f"{len(entries)} camera(s) found ({found}); at least 2 expected (one "
+                                     "sub-folder of images or one video file per camera)")
+    names = [e[0] for e in entries]
+    if cams:
+        per_cam = [{p.stem: p for p in fs} for _, fs in entries]
+        instants = sorted(set().union(*per_cam), key=natural_key)
+        counts = [len(d) for d in per_cam]
+        if min(counts) < (1.0 - max_missing_fraction) * len(instants):
+            raise HeartcvIOError(folder, "cameras with different frame counts: " + ", ".join(
+                f"{n} {c}" for n, c in zip(names, counts)) + f" ({len(instants)} instants in all)")
+        files = tuple(tuple(d.get(i) for i in instants) for d in per_cam)
+        return FrameSource(folder, "images", tuple(names), tuple(instants), files)
+    counts, rates = [], []
+    for _, (path,) in entries:
+        cap = cv2.VideoCapture(str(path))
+        try:
+            if not cap.isOpened():
+                raise HeartcvIOError(path, "cannot open the video (unsupported or corrupt)")
+            counts.append(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+            rates.append(float(cap.get(cv2.CAP_PROP_FPS) or 0.0))
+        finally:
+            cap.release()
+    if len(set(counts)) > 1:
+        raise HeartcvIOError(folder, "cameras with different frame counts: " + ", ".join(
+            f"{n} {c}" for n, c in zip(names, counts)))
+    fps = rates[0] if rates and rates[0] > 0 and all(abs(r - rates[0]) < 1e-6 * rates[0] for r in rates) else None
+    return FrameSource(folder, "video", tuple(names), tuple(f"frame{k:06d}" for k in range(counts[0])),
+                       tuple((e[1][0],) for e in entries), fps)
+
+
+class FrameReader:
+    """Read the instants of a :class:`FrameSource` in order, all cameras at once (threads for image files).
+
+    Iterating yields ``(k, images, problems)``: ``images`` one array per camera (8-bit, gray or BGR per
+    ``mode``) or None where that camera's image is missing, unreadable, corrupt or of the wrong size, and
+    ``problems`` the messages (each naming the file) for those. Use as a context manager (videos are closed).
+
+    Parameters
+    ----------
+    sizes : sequence of (width, height), optional
+        Expected image size per camera; other sizes are reported as problems.
+    frames : sequence of int, optional
+        Instants to read (increasing); default all.
+    """
+
+    def __init__(self, source: FrameSource, *, mode="gray", sizes=None, frames=None, workers=2):
+        self.source = source
+        self.mode = mode
+        self.sizes = list(sizes) if sizes is not None else [None] * source.n_cameras
+        self.frames = list(range(source.n_frames)) if frames is None else [int(k) for k in frames]
+        self.workers = max(1, int(workers))
+        self._caps = None
+        self._pool = None
+
+    def __enter__(self):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(self.workers)
+        if self.source.kind == "video":
+            import cv2
+
+            self._caps = [cv2.VideoCapture(str(f[0])) for f in self.source.files]
+            self._pos = [0] * len(self._caps)
+        return self
+
+    def __exit__(self, *exc):
+        if self._caps:
+            for c in self._caps:
+                c.release()
+        if self._pool:
+            self._pool.shutdown()
+        return False
+
+    def _read_file(self, c, path):
+        if path is None:
+            return None, (f"{self.source.folder / self.source.camera_names[c]}: no image for this instant")
+        try:
+            return read_image(path, self.mode, self.sizes[c]), None
+        except HeartcvIOError as exc:
+            return None, str(exc)
+
+    def _read_video(self, c, k):
+        import cv2
+
+        cap, path = self._caps[c], self.source.files[c][0]
+        if self._pos[c] != k:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, k)
+        ok, img = cap.read()
+        self._pos[c] = k + 1
+        if not ok or img is None:
+            return None, f"{path}: frame {k} cannot be decoded"
+        if self.mode == "gray" and img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        size = self.sizes[c]
+        if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+            return None, f"{path}: frame {k} is {img.shape[1]}x{img.shape[0]} px, {size[0]}x{size[1]} expected"
+        return img, None
+
+    def read(self, k):
+        """``(images, problems)`` of instant ``k``."""
+        if self._pool is None:
+            raise RuntimeError("FrameReader: use it as a context manager")
+        C = self.source.n_cameras
+        if self.source.kind == "images":
+            res = list(self._pool.map(self._read_file, range(C), [self.source.files[c][k] for c in range(C)]))
+        else:
+            res = list(self._pool.map(self._read_video, range(C), [k] * C))
+        return [r[0] for r in res], [r[1] for r in res if r[1]]
+
+    def __iter__(self):
+        for k in self.frames:
+            images, problems = self.read(k)
+            yield k, images, problems
+
+
+def read_timestamps(path, frame_names) -> np.ndarray:
+    """Frame times (K,) in seconds from ``timestamps.csv``: a header row with a ``time_s`` column (and an optional
+    ``frame`` column of file stems), one row per instant; times are shifted to start at 0. HeartcvIOError for a
+    count or name mismatch or times that do not increase."""
+    cols, _ = read_inputs_csv_columns(path, numeric_except=("frame",))
+    if "time_s" not in cols:
+        raise HeartcvIOError(path, f"a 'time_s' column expected, got {list(cols)}")
+    t = np.asarray(cols["time_s"], float)
+    if t.size != len(frame_names):
+        raise HeartcvIOError(path, f"{t.size} rows for {len(frame_names)} frames")
+    if "frame" in cols:
+        names = [str(n) for n in cols["frame"]]
+        if names != [str(n) for n in frame_names]:
+            bad = next(i for i, (a, b) in enumerate(zip(names, frame_names)) if a != str(b))
+            raise HeartcvIOError(path, f"row {bad + 1} names frame {names[bad]!r}, the sequence has "
+                                       f"{frame_names[bad]!r} there")
+    if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise HeartcvIOError(path, "time_s must be finite and strictly increasing")
+    return t - t[0]
+
+
+def read_inputs_csv_columns(path, numeric_except=()) -> tuple[dict, int]:
+    """``({column: values}, n_rows)`` of a comma-separated table with ``#`` comment lines and a header row;
+    columns named in ``numeric_except`` are kept as strings, the others parsed as floats."""
+    path = Path(path)
+    try:
+        rows = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
+    except OSError as exc:
+        raise HeartcvIOError(path, f"cannot read table ({exc.strerror})") from None
+    if not rows:
+        raise HeartcvIOError(path, "empty table (a header row of column names expected)")
+    header = [c.strip() for c in rows[0].split(",")]
+    cells = [[c.strip() for c in r.split(",")] for r in rows[1:]]
+    for i, r in enumerate(cells):
+        if len(r) != len(header):
+            raise HeartcvIOError(path, f"row {i + 1}: {len(r)} values for {len(header)} columns {header}")
+    out = {}
+    for j, name in enumerate(header):
+        col = [r[j] for r in cells]
+        if name in numeric_except:
+            out[name] = col
+            continue
+        try:
+            out[name] = np.array([float(v) for v in col], float)
+        except ValueError as exc:
+            raise HeartcvIOError(path, f"column {name!r}: not numeric ({exc})") from None
+    return out, len(cells)
+
+
+def read_mask(path, expected_size=None) -> np.ndarray:
+    """A region-of-interest mask image as bool (H, W): nonzero pixels are inside."""
+    img = read_image(path, "gray", expected_size)
+    mask = img > 0
+    if not mask.any():
+        raise HeartcvIOError(path, "the mask is empty (no nonzero pixel)")
+    return mask

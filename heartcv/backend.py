@@ -1,0 +1,69 @@
+"""Image operations behind detection, description and matching, in two interchangeable backends.
+
+The geometry of the matcher (rays, plane-induced warps, the camera model) stays in numpy; what touches pixels
+goes through a backend:
+
+* ``pyramid(image, levels)``: the image (float32 (H, W)) and ``levels`` 2x-subsampled versions (Gaussian 5-tap,
+  as ``cv2.pyrDown``), in the backend's own array type;
+* ``patch_ncc(level_image, ref_samples, pts)``: bilinear samples of one pyramid level at ``pts`` (..., G, 2)
+  (pixel coordinates of that level) compared by zero-mean NCC with ``ref_samples`` (numpy, any shape that
+  broadcasts against (..., G)): the patch
+  descriptor and the matching score in one step, returned as numpy float32 (...); NaN where a sample falls
+  outside the image, 0 where a patch is flat;
+* ``sample(level_image, pts)``: the bilinear samples themselves as numpy float32 (...) (NaN outside);
+* ``corner_response(gray, block_size)``: the Shi–Tomasi response (the smaller eigenvalue of the structure
+  tensor summed over a ``block_size`` box, Sobel 3x3 derivatives, as ``cv2.cornerMinEigenVal``).
+
+:class:`OpenCVBackend` (the default) uses cv2 and numpy; ``heartcv.backends.kornia_backend.KorniaBackend`` does
+the same on torch tensors with kornia (CPU or CUDA). Both must give the same matches to within float32
+rounding (tests/heartcv/test_backends.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .features import ncc, sample_at
+
+__all__ = ["OpenCVBackend", "get_backend"]
+
+
+class OpenCVBackend:
+    """cv2 + numpy image operations (float32)."""
+
+    name = "opencv"
+
+    def pyramid(self, image, levels):
+        import cv2
+
+        pyr = [np.ascontiguousarray(image, np.float32)]
+        for _ in range(levels):
+            pyr.append(cv2.pyrDown(pyr[-1]))
+        return pyr
+
+    def sample(self, level_image, pts):
+        return sample_at(level_image, pts)
+
+    def patch_ncc(self, level_image, ref_samples, pts):
+        return ncc(ref_samples, sample_at(level_image, pts))
+
+    def corner_response(self, gray, block_size=7):
+        import cv2
+
+        return cv2.cornerMinEigenVal(np.asarray(gray), block_size, ksize=3)
+
+
+def get_backend(name="opencv", device=None):
+    """The backend called ``name`` ('opencv' or 'kornia'); ``device`` ('cpu', 'cuda', ...) for kornia.
+
+    ValueError for an unknown name; ImportError (naming the extra to install) when kornia is missing."""
+    if name == "opencv":
+        return OpenCVBackend()
+    if name == "kornia":
+        try:
+            from .backends.kornia_backend import KorniaBackend
+        except ImportError as exc:
+            raise ImportError(f"the kornia backend needs torch and kornia (pip install 'heartcv[kornia]'): {exc}") \
+                from None
+        return KorniaBackend(device=device)
+    raise ValueError(f"backend: 'opencv' or 'kornia' expected, got {name!r}")

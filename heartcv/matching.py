@@ -1,0 +1,437 @@
+"""Cross-view association of reference corners: a plane sweep along each corner's viewing ray.
+
+The rig's cameras are far apart (DESIGN.md §7: the pairs see the surface 43–57° apart), so a patch looks
+different in every view and plain descriptor matching is unreliable. Instead, for each corner of the reference
+camera, candidate 3-D points are taken along its viewing ray (every ``step_px`` pixels of motion along the
+epipolar curves of the other cameras, only where the ray is inside every other image); at each candidate the
+reference patch is mapped into every other camera through the plane through the candidate with normal ``n``
+(the homography induced by that plane, with the full distortion model), and the zero-mean NCC of the mapped
+patch with the other camera's image is computed. The score of a candidate is the mean NCC over the other
+cameras, so a depth must agree in all of them at once (trinocular consistency removes nearly all ambiguity).
+
+The sweep runs coarse to fine: on the images blurred and subsampled to ``coarse_level`` (every ``2**level``
+pixels), then at full resolution around the coarse optimum with sub-pixel steps and a parabola through the
+best three scores. Normals: first the bisector of the directions to the cameras (the surface faces the rig);
+after a first pass, each point's normal is fitted to its triangulated neighbours and the fine sweep repeated.
+
+The epipolar constraint is built in (candidates lie on the ray); photometric verification is the NCC
+threshold ``min_ncc`` per view. Okutomi & Kanade, "A multiple-baseline stereo", PAMI 1993; Collins, "A
+space-sweep approach to true multi-image matching", CVPR 1996; Gallup et al., "Real-time plane-sweeping stereo
+with multiple sweeping directions", CVPR 2007.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .backend import OpenCVBackend
+
+__all__ = ["MatchResult", "match_points", "ray_depth_range", "patch_offsets", "normal_hypotheses",
+           "local_planes", "bisector_normals"]
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """Correspondences of reference corners in every camera.
+
+    Attributes
+    ----------
+    uv : ndarray (N, C, 2)        matched pixel position per camera (the reference camera's is the corner itself);
+                                  NaN where not matched
+    score : ndarray (N, C)        NCC of the warped reference patch in each camera (1 for the reference camera)
+    depth : ndarray (N,)          distance along the reference ray (m), NaN where no depth was found
+    points : ndarray (N, 3)       the matched 3-D point on the reference ray (rig frame)
+    normals : ndarray (N, 3)      the plane normal used last
+    ok : ndarray (N,)             matched in at least ``min_views`` cameras (the reference included)
+    """
+
+    uv: np.ndarray
+    score: np.ndarray
+    depth: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    ok: np.ndarray
+
+
+def patch_offsets(radius, step=1.0) -> np.ndarray:
+    """Offsets (G, 2) of a square patch of (2 radius + 1)^2 samples, ``step`` pixels apart."""
+    r = np.arange(-radius, radius + 1, dtype=float) * step
+    dx, dy = np.meshgrid(r, r)
+    return np.stack([dx.ravel(), dy.ravel()], axis=1)
+
+
+def ray_depth_range(cameras, ref, origins, dirs, *, near=0.02, far=5.0, margin_px=20, samples=1024):
+    """Depth interval (N, 2) along each ray where its point lies in front of and inside every other camera.
+
+    Sampled on ``samples`` log-spaced depths in [near, far]; NaN rows where no such depth exists.
+    """
+    t = np.geomspace(near, far, samples)
+    X = origins[:, None, :] + t[None, :, None] * dirs[:, None, :]
+    inside = np.ones(X.shape[:2], bool)
+    for c, cam in enumerate(cameras):
+        if c == ref:
+            continue
+        uv = cam.project(X.reshape(-1, 3)).reshape(X.shape[0], samples, 2)
+        inside &= np.isfinite(uv).all(axis=-1) & cam.in_image(uv, margin_px)
+    out = np.full((len(origins), 2), np.nan)
+    any_in = inside.any(axis=1)
+    first = np.argmax(inside, axis=1)
+    last = samples - 1 - np.argmax(inside[:, ::-1], axis=1)
+    out[any_in, 0] = t[first[any_in]]
+    out[any_in, 1] = t[last[any_in]]
+    return out
+
+
+def _candidate_depths(cameras, ref, origins, dirs, t_range, step_px, max_candidates):
+    """Depth candidates (N, J) at about ``step_px`` pixels of motion in the fastest-moving other camera."""
+    n = len(origins)
+    fine = 256
+    s = np.linspace(0.0, 1.0, fine)
+    # inverse depth is close to linear in the epipolar coordinate: sample it uniformly first
+    inv = 1.0 / t_range[:, :1] + s[None, :] * (1.0 / t_range[:, 1:] - 1.0 / t_range[:, :1])
+    t = 1.0 / inv
+    X = origins[:, None, :] + t[..., None] * dirs[:, None, :]
+    arc = np.zeros((n, fine))
+    for c, cam in enumerate(cameras):
+        if c == ref:
+            continue
+        uv = cam.project(X.reshape(-1, 3)).reshape(n, fine, 2)
+        seg = np.linalg.norm(np.diff(uv, axis=1), axis=-1)
+        arc = np.maximum(arc, np.concatenate([np.zeros((n, 1)), np.cumsum(np.nan_to_num(seg), axis=1)], axis=1))
+    length = arc[:, -1]
+    J = int(min(max_candidates, max(2, np.ceil(np.nanmax(length, initial=1.0) / step_px) + 1)))
+    out = np.full((n, J), np.nan)
+    for i in range(n):
+        m = int(min(J, max(2, np.ceil(length[i] / step_px) + 1)))
+        a = np.linspace(0.0, length[i], m)
+        out[i, :m] = np.interp(a, arc[i], t[i])
+    return out
+
+
+def _plane_points(origin, ray_dirs, X0, normal):
+    """Intersections (..., G, 3) of rays ``origin + s ray_dirs`` (N, G, 3) with the planes through X0 (N, J, 3)
+    of normals (N, 3): (N, J, G, 3)."""
+    num = ((X0 - origin[:, None, :]) * normal[:, None, :]).sum(axis=-1)     # n.(X0 - o)   (N, J)
+    den = (ray_dirs * normal[:, None, :]).sum(axis=-1)                       # n.d_g        (N, G)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = num[:, :, None] / np.where(np.abs(den) > 1e-9, den, np.nan)[:, None, :]
+    return origin[:, None, None, :] + s[..., None] * ray_dirs[:, None, :, :]
+
+
+def _pyramid_coords(uv, level):
+    """Full-resolution pixel coordinates -> coordinates in an image subsampled ``level`` times by 2 (pyrDown)."""
+    f = 2.0 ** level
+    return (uv + 0.5) / f - 0.5
+
+
+def _scores(backend, cameras, ref, images, origins, centre_dirs, axis_dirs, h, offsets, ref_samples, X0, normals,
+            level, chunk=64):
+    """NCC (N, J, C) of the reference patches against the other cameras at candidate points X0 (N, J, 3).
+
+    The plane-induced mapping of the reference patch into a camera is linearised at the patch centre (an
+    affine map from the images of the centre ray and of two rays ``h`` pixels beside it): exact to far below
+    a pixel over a patch, and it costs three projections per candidate instead of one per patch sample.
+    """
+    N, J = X0.shape[:2]
+    C = len(cameras)
+    out = np.full((N, J, C), np.nan, np.float32)
+    rays = np.concatenate([centre_dirs[:, None, :], axis_dirs], axis=1)             # (N, 3, 3)
+    for a in range(0, N, chunk):
+        sl = slice(a, a + chunk)
+        P = _plane_points(origins[sl], rays[sl], X0[sl], normals[sl])                # (n, J, 3, 3)
+        for c, cam in enumerate(cameras):
+            if c == ref or images[c] is None:
+                continue
+            uv = cam.project(P.reshape(-1, 3)).reshape(P.shape[:3] + (2,))          # (n, J, 3, 2)
+            A = (uv[:, :, 1:, :] - uv[:, :, :1, :]) / h                            # rows: d uv / d du, d uv / d dv
+            grid = (uv[:, :, :1, :] + offsets[:, 0, None] * A[:, :, None, 0, :]
+                    + offsets[:, 1, None] * A[:, :, None, 1, :])                   # (n, J, G, 2)
+            out[sl, :, c] = backend.patch_ncc(images[c], ref_samples[sl][:, None, :], _pyramid_coords(grid, level))
+    return out
+
+
+def _sweep(backend, cameras, ref, images, origins, dirs, uv_ref, depths, normals, radius, level):
+    """Scores of the candidate depths (N, J): combined (mean over the other cameras) and per camera (N, J, C)."""
+    cam = cameras[ref]
+    step = 2.0 ** level
+    offs = patch_offsets(radius, step)
+    h = step
+    side = np.stack([uv_ref + [h, 0.0], uv_ref + [0.0, h]], axis=1)
+    _, sd = cam.rays(side.reshape(-1, 2))
+    ref_samples = backend.sample(images[ref], _pyramid_coords(uv_ref[:, None, :] + offs[None], level))
+    X0 = origins[:, None, :] + depths[..., None] * dirs[:, None, :]
+    per_cam = _scores(backend, cameras, ref, images, origins, dirs, sd.reshape(-1, 2, 3), h, offs, ref_samples, X0,
+                      normals, level)
+    others = [c for c in range(len(cameras)) if c != ref and images[c] is not None]
+    sc = per_cam[:, :, others]
+    combined = np.where(np.isfinite(sc), sc, -1.0).mean(axis=2)
+    combined = np.where(np.isfinite(depths), combined, -np.inf)
+    return combined, per_cam
+
+
+def bisector_normals(cameras, points) -> np.ndarray:
+    """Unit normals (N, 3): the mean of the unit directions from each point to the camera centres."""
+    d = np.zeros_like(points)
+    for cam in cameras:
+        v = cam.centre[None, :] - points
+        d += v / np.linalg.norm(v, axis=1, keepdims=True)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _refine_parabola(combined, j):
+    """Sub-sample offset in [-0.5, 0.5] of the optimum at index j (N,) by a parabola through its neighbours."""
+    N, J = combined.shape
+    jm = np.clip(j - 1, 0, J - 1)
+    jp = np.clip(j + 1, 0, J - 1)
+    r = np.arange(N)
+    f0, fm, fp = combined[r, j], combined[r, jm], combined[r, jp]
+    den = fm - 2 * f0 + fp
+    ok = (jm != j) & (jp != j) & np.isfinite(fm) & np.isfinite(fp) & (den < 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off = np.where(ok, 0.5 * (fm - fp) / np.where(ok, den, 1.0), 0.0)
+    return np.clip(off, -0.5, 0.5)
+
+
+def normal_hypotheses(axis, tilt_deg=(0.0, 30.0), per_ring=6) -> np.ndarray:
+    """Unit normals (N, H, 3) around each ``axis`` (N, 3): the axis itself and rings of ``per_ring`` normals
+    tilted by each nonzero angle in ``tilt_deg``."""
+    axis = np.asarray(axis, float)
+    helper = np.where(np.abs(axis[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(axis, e1)
+    out = []
+    for a in tilt_deg:
+        a = np.radians(a)
+        if a == 0:
+            out.append(axis)
+            continue
+        for phi in 2 * np.pi * np.arange(per_ring) / per_ring:
+            out.append(np.cos(a) * axis + np.sin(a) * (np.cos(phi) * e1 + np.sin(phi) * e2))
+    return np.stack(out, axis=1)
+
+
+def local_planes(uv_ref, seed_uv, seed_points, origins, dirs, k=10, max_px=200.0):
+    """Depth (N,) and normal (N, 3) predicted for each ray from the plane through its ``k`` nearest seeds
+    (nearest in the reference image, within ``max_px``); NaN where fewer than 4 seeds are near."""
+    from scipy.spatial import cKDTree
+
+    N = len(uv_ref)
+    depth = np.full(N, np.nan)
+    normal = np.full((N, 3), np.nan)
+    if len(seed_uv) < 4:
+        return depth, normal
+    tree = cKDTree(seed_uv)
+    dist, nb = tree.query(uv_ref, k=min(k, len(seed_uv)))
+    for i in range(N):
+        nn = nb[i][dist[i] <= max_px]
+        if nn.size < 4:
+            continue
+        P = seed_points[nn]
+        c = P.mean(axis=0)
+        _, sv, vt = np.linalg.svd(P - c, full_matrices=False)
+        if sv[1] < 1e-6:               # collinear seeds: no plane
+            continue
+        n = vt[-1]
+        den = n @ dirs[i]
+        if abs(den) < 0.2:
+            continue
+        depth[i] = n @ (c - origins[i]) / den
+        normal[i] = n if den < 0 else -n   # facing the reference camera
+    return depth, normal
+
+
+def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coarse_radius=4, step_px=1.0,
+                 fine_step_px=0.2, fine_span_px=None, min_ncc=0.8, min_views=2, max_candidates=4000,
+                 depth_range=None, tilt_deg=(0.0, 30.0), surface_passes=3, surface_span_px=(16.0, 8.0, 4.0),
+                 max_seeds=48, pyramids=None, backend=None) -> MatchResult:
+    """Match corners of the reference camera in every other camera by a plane sweep (module docstring).
+
+    Parameters
+    ----------
+    cameras : sequence of Camera (C)
+    images : sequence of ndarray (H, W) (C)
+        Gray images of one instant (float32 or uint8); None for a camera without an image.
+    ref : int
+        The reference camera (where ``uv_ref`` was detected).
+    uv_ref : ndarray (N, 2)
+    radius : int
+        Patch radius at full resolution ((2 radius + 1)^2 samples).
+    coarse_level, coarse_radius, step_px, tilt_deg :
+        The seed sweep: images subsampled ``coarse_level`` times, patches of ``coarse_radius``, candidates every
+        ``step_px`` pixels of that level, plane normals tilted by ``tilt_deg`` around the cameras' bisector.
+    fine_step_px, fine_span_px :
+        The fine sweep at full resolution: steps of ``fine_step_px`` pixels over +- ``fine_span_px`` around the
+        coarse optimum (default: two coarse steps).
+    min_ncc : float
+        A camera's match is kept if its NCC reaches this.
+    max_seeds : int
+        The full-range seed sweep runs on at most this many points spread over the image (and on any point
+        with no matched neighbours); the others are found by the surface passes.
+    surface_passes, surface_span_px :
+        After the seed sweep, every point is matched again ``surface_passes + 1`` times with the depth and
+        normal predicted by the plane through its nearest matched neighbours, over +- ``surface_span_px[p]``
+        pixels in pass p (the last value for later passes).
+    depth_range : (near, far), optional
+        Limit the search along the rays (metres from the reference camera's centre).
+    pyramids : sequence of list, optional
+        Precomputed ``backend.pyramid(image, coarse_level)`` per camera (None for a missing image).
+    backend : OpenCVBackend or KorniaBackend, optional
+        The image operations (heartcv.backend); default OpenCV.
+
+    Returns
+    -------
+    MatchResult
+    """
+    cameras = list(cameras)
+    C = len(cameras)
+    uv_ref = np.atleast_2d(np.asarray(uv_ref, float))
+    N = len(uv_ref)
+    if len(images) != C:
+        raise ValueError(f"images: {C} expected (one per camera), got {len(images)}")
+    if images[ref] is None:
+        raise ValueError("images: the reference camera's image is missing")
+    backend = backend or OpenCVBackend()
+    if pyramids is None:
+        pyramids = [None if im is None else backend.pyramid(np.asarray(im, np.float32), coarse_level)
+                    for im in images]
+    full = [None if p is None else p[0] for p in pyramids]
+    coarse = [None if p is None else p[coarse_level] for p in pyramids]
+    empty = MatchResult(np.full((N, C, 2), np.nan), np.full((N, C), np.nan), np.full(N, np.nan),
+                        np.full((N, 3), np.nan), np.full((N, 3), np.nan), np.zeros(N, bool))
+    if N == 0:
+        return empty
+    origins, dirs = cameras[ref].rays(uv_ref)
+    t_range = ray_depth_range(cameras, ref, origins, dirs) if depth_range is None else \
+        np.broadcast_to(np.asarray(depth_range, float), (N, 2)).copy()
+    searchable = np.isfinite(t_range).all(axis=1)
+    if not searchable.any():
+        return empty
+    idx = np.flatnonzero(searchable)
+    o, d, uv0 = origins[idx], dirs[idx], uv_ref[idx]
+    n = len(idx)
+    rows = np.arange(n)
+    others = [c for c in range(C) if c != ref and images[c] is not None]
+
+    def fine(sub, t_center, normals, span):
+        dt = _depth_per_pixel(cameras, ref, o[sub], d[sub], t_center)
+        m = int(np.ceil(span / fine_step_px))
+        steps = np.arange(-m, m + 1) * fine_step_px
+        cand = t_center[:, None] + steps[None, :] * dt[:, None]
+        comb, per_cam = _sweep(backend, cameras, ref, full, o[sub], d[sub], uv0[sub], cand, normals, radius, 0)
+        j = np.argmax(comb, axis=1)
+        off = _refine_parabola(comb, j)
+        t = t_center + (steps[j] + off * fine_step_px) * dt
+        return t, per_cam[np.arange(len(j)), j]
+
+    def seed_sweep(sub):
+        """Coarse sweep over the whole visible depth range and a few normals, then a fine sweep."""
+        depths = _candidate_depths(cameras, ref, o[sub], d[sub], t_range[idx[sub]],
+                                   step_px * 2.0 ** coarse_level, max_candidates)
+        mid = o[sub] + np.nanmean(depths, axis=1)[:, None] * d[sub]
+        hyp = normal_hypotheses(bisector_normals(cameras, mid), tilt_deg)
+        m = len(sub)
+        rr = np.arange(m)
+        best_score = np.full(m, -np.inf)
+        t_best = np.full(m, np.nan)
+        n_best = hyp[:, 0].copy()
+        for h in range(hyp.shape[1]):
+            comb, _ = _sweep(backend, cameras, ref, coarse, o[sub], d[sub], uv0[sub], depths, hyp[:, h], coarse_radius,
+                             coarse_level)
+            j = np.argmax(comb, axis=1)
+            better = comb[rr, j] > best_score
+            best_score[better] = comb[rr, j][better]
+            t_best[better] = depths[rr, j][better]
+            n_best[better] = hyp[better, h]
+        span = fine_span_px if fine_span_px is not None else 2.0 * step_px * 2.0 ** coarse_level
+        t, pc = fine(sub, t_best, n_best, span)
+        return t, pc, n_best
+
+    def mean_score(pc):
+        return np.where(np.isfinite(pc[:, others]), pc[:, others], -1.0).mean(axis=1) if others else \
+            np.full(len(pc), -1.0)
+
+    # 1. seed sweep on a spread subset (all points when few)
+    t_fine = np.full(n, np.nan)
+    per_cam = np.full((n, C), np.nan, np.float32)
+    normals = np.full((n, 3), np.nan)
+    seeds = _spread_subset(uv0, max_seeds)
+    t_fine[seeds], per_cam[seeds], normals[seeds] = seed_sweep(seeds)
+    swept = np.zeros(n, bool)
+    swept[seeds] = True
+
+    # 2. surface passes: depth and normal from the plane through the matched neighbours
+    for p in range(surface_passes + 1):
+        good = np.isfinite(t_fine) & (np.all(per_cam[:, others] >= min_ncc, axis=1) if others else False)
+        X = o + t_fine[:, None] * d
+        t_pred, n_pred = local_planes(uv0, uv0[good], X[good], o, d)
+        usable = np.flatnonzero(np.isfinite(t_pred))
+        if usable.size:
+            span_p = surface_span_px[min(p, len(surface_span_px) - 1)]
+            t2, pc2 = fine(usable, t_pred[usable], n_pred[usable], span_p)
+            old = mean_score(per_cam[usable])
+            take = ~np.isfinite(t_fine[usable]) | (mean_score(pc2) >= old - 0.02)
+            u = usable[take]
+            t_fine[u], per_cam[u], normals[u] = t2[take], pc2[take], n_pred[u]
+        # points no plane could predict: a seed sweep of their own
+        lone = np.flatnonzero(~np.isfinite(t_pred) & ~swept)
+        if lone.size and p < surface_passes:
+            t_fine[lone], per_cam[lone], normals[lone] = seed_sweep(lone)
+            swept[lone] = True
+
+    X = o + t_fine[:, None] * d
+    uv = np.full((N, C, 2), np.nan)
+    score = np.full((N, C), np.nan)
+    for c, cam in enumerate(cameras):
+        if c == ref:
+            uv[idx, c] = uv0
+            score[idx, c] = 1.0
+            continue
+        if images[c] is None:
+            continue
+        p = cam.project(X)
+        keep = per_cam[:, c] >= min_ncc
+        uv[idx[keep], c] = p[keep]
+        score[idx, c] = per_cam[:, c]
+    n_views = np.isfinite(uv).all(axis=2).sum(axis=1)
+    ok = n_views >= min_views
+    depth = np.full(N, np.nan)
+    depth[idx] = t_fine
+    pts = np.full((N, 3), np.nan)
+    pts[idx] = X
+    nrm = np.full((N, 3), np.nan)
+    nrm[idx] = normals
+    depth[~ok] = np.nan
+    pts[~ok] = np.nan
+    uv[~ok] = np.nan
+    uv[~ok, ref] = uv_ref[~ok]
+    return MatchResult(uv, score, depth, pts, nrm, ok)
+
+
+def _spread_subset(uv, m) -> np.ndarray:
+    """Indices of at most ``m`` points of ``uv`` (N, 2) spread by greedy farthest-point sampling."""
+    n = len(uv)
+    if n <= m:
+        return np.arange(n)
+    chosen = [int(np.argmin(np.linalg.norm(uv - uv.mean(axis=0), axis=1)))]
+    dist = np.linalg.norm(uv - uv[chosen[0]], axis=1)
+    for _ in range(m - 1):
+        i = int(np.argmax(dist))
+        chosen.append(i)
+        dist = np.minimum(dist, np.linalg.norm(uv - uv[i], axis=1))
+    return np.array(sorted(chosen))
+
+
+def _depth_per_pixel(cameras, ref, o, d, t):
+    """Metres along the ray per pixel of motion in the fastest-moving other camera, at depth t (N,)."""
+    h = 1e-5
+    rate = np.zeros(len(t))
+    for c, cam in enumerate(cameras):
+        if c == ref:
+            continue
+        a = cam.project(o + (t - h)[:, None] * d)
+        b = cam.project(o + (t + h)[:, None] * d)
+        rate = np.maximum(rate, np.nan_to_num(np.linalg.norm(b - a, axis=1) / (2 * h)))
+    return 1.0 / np.maximum(rate, 1e-9)
