@@ -15,6 +15,7 @@ COMMANDS = {
     "target": "cli.target:target",
     "calibrate": "cli.calibrate:calibrate",
     "render": "cli.render:render",
+    "measure": "cli.measure:measure",
 }
 
 
@@ -37,8 +38,8 @@ class LazyGroup(click.Group):
 def main(ctx, verbose, quiet):
     """heartcv: physics-based tracking of beating-heart surface motion.
 
-    Available: `target`, `render`, `calibrate`, `model info`, `model simulate`, `track` (kf, ge, ukf, ekf),
-    `simulate` (Monte-Carlo study of the estimators). Planned stages: measure, fit, report. Logs go to stderr; --json summaries to stdout.
+    Available: `target`, `render`, `calibrate`, `measure`, `model info`, `model simulate`, `track` (kf, ge,
+    ukf, ekf), `simulate` (Monte-Carlo study of the estimators). Planned stages: fit, report. Logs go to stderr; --json summaries to stdout.
     """
     verbosity = verbose - quiet
     logging.basicConfig(level=max(10, 30 - 10 * verbosity), format="%(levelname)s %(name)s: %(message)s",

@@ -197,6 +197,9 @@ def sequence(ctx, scene_file, output, seed, workers, frames, as_json):
         write_inputs_csv(tmp / "inputs.csv", cols, vals[:count],
                          "heartcv render sequence: known inputs at the frame times (docs/formats.md, inputs.csv)\n"
                          "time_s: s from the first frame; *_pa: Pa; respiration_*_m: m, patch frame")
+        write_inputs_csv(tmp / "timestamps.csv", ["time_s"], np.asarray(setup.frame_times[:count])[:, None],
+                         "heartcv render sequence: the time of each frame (s from the first frame), one row per "
+                         "frame in file-name order")
         write_rig(tmp / "rig_truth.yaml", setup.rig)
         (tmp / "scene.yaml").write_bytes(Path(scene_file).read_bytes())
     wall = time.perf_counter() - t0

@@ -244,9 +244,11 @@ def local_planes(uv_ref, seed_uv, seed_points, origins, dirs, k=10, max_px=200.0
 
 
 def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coarse_radius=4, step_px=1.0,
-                 fine_step_px=0.2, fine_span_px=None, min_ncc=0.8, min_views=2, max_candidates=4000,
+                 fine_step_px=0.2, fine_span_px=None, min_ncc=0.85, min_views=2, max_candidates=4000,
                  depth_range=None, tilt_deg=(0.0, 30.0), surface_passes=3, surface_span_px=(16.0, 8.0, 4.0),
-                 max_seeds=48, pyramids=None, backend=None) -> MatchResult:
+                 max_seeds=48, refine_tilt_deg=(12.0, 6.0, 3.0), refine_span_px=2.0, min_ncc_two_view=0.95,
+                 max_plane_dev_m=0.003, pyramids=None,
+                 backend=None) -> MatchResult:
     """Match corners of the reference camera in every other camera by a plane sweep (module docstring).
 
     Parameters
@@ -274,6 +276,13 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
         After the seed sweep, every point is matched again ``surface_passes + 1`` times with the depth and
         normal predicted by the plane through its nearest matched neighbours, over +- ``surface_span_px[p]``
         pixels in pass p (the last value for later passes).
+    refine_tilt_deg, refine_span_px :
+        Finally, for each angle in ``refine_tilt_deg``, six normals tilted by it around each point's normal are
+        tried with a fine sweep over +- ``refine_span_px``; the best-scoring (depth, normal) is kept.
+    min_ncc_two_view, max_plane_dev_m :
+        Verification: with three or more cameras, a point seen in only two needs this NCC in both; and a point
+        whose depth lies farther than ``max_plane_dev_m`` from the plane through its matched neighbours is
+        dropped (None: no such check).
     depth_range : (near, far), optional
         Limit the search along the rays (metres from the reference camera's centre).
     pyramids : sequence of list, optional
@@ -381,7 +390,46 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
             t_fine[lone], per_cam[lone], normals[lone] = seed_sweep(lone)
             swept[lone] = True
 
+    # 3. normal refinement: rings of tilted normals around each point's normal, keep the best fine sweep
+    for tilt in refine_tilt_deg:
+        sub = np.flatnonzero(np.isfinite(t_fine))
+        if sub.size == 0:
+            break
+        hyp = normal_hypotheses(normals[sub], (0.0, tilt))
+        best = mean_score(per_cam[sub])
+        for h in range(1, hyp.shape[1]):
+            t2, pc2 = fine(sub, t_fine[sub], hyp[:, h], refine_span_px)
+            sc = mean_score(pc2)
+            better = sc > best
+            u = sub[better]
+            t_fine[u], per_cam[u], normals[u] = t2[better], pc2[better], hyp[better, h]
+            best[better] = sc[better]
+
+    # 4. verification: per-view NCC, a stricter NCC when only two views agree, and the depth must lie near the
+    #    plane through the point's matched neighbours (leave-one-out), which removes gross depth errors
+    view_ok = np.zeros((n, C), bool)
+    view_ok[:, ref] = True
+    for c in others:
+        view_ok[:, c] = np.nan_to_num(per_cam[:, c], nan=-1.0) >= min_ncc
+    n_ok = view_ok.sum(axis=1)
+    two = n_ok == 2
+    if len(others) >= 2:
+        strict = np.all(np.where(view_ok[:, others], np.nan_to_num(per_cam[:, others], nan=-1.0), 1.0)
+                        >= min_ncc_two_view, axis=1)
+        view_ok[two & ~strict] = False
+        view_ok[two & ~strict, ref] = True
+    good = np.isfinite(t_fine) & (view_ok.sum(axis=1) >= min_views)
     X = o + t_fine[:, None] * d
+    if max_plane_dev_m is not None and good.sum() >= 5:
+        dev = np.full(n, np.nan)
+        gi = np.flatnonzero(good)
+        for i in gi:
+            nb = gi[gi != i]
+            tp, _ = local_planes(uv0[i:i + 1], uv0[nb], X[nb], o[i:i + 1], d[i:i + 1])
+            dev[i] = t_fine[i] - tp[0]
+        far = good & np.isfinite(dev) & (np.abs(dev) > max_plane_dev_m)
+        view_ok[far] = False
+
     uv = np.full((N, C, 2), np.nan)
     score = np.full((N, C), np.nan)
     for c, cam in enumerate(cameras):
@@ -392,9 +440,9 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
         if images[c] is None:
             continue
         p = cam.project(X)
-        keep = per_cam[:, c] >= min_ncc
+        keep = view_ok[:, c]
         uv[idx[keep], c] = p[keep]
-        score[idx, c] = per_cam[:, c]
+        score[idx, c] = np.where(np.isfinite(per_cam[:, c]), per_cam[:, c], np.nan)
     n_views = np.isfinite(uv).all(axis=2).sum(axis=1)
     ok = n_views >= min_views
     depth = np.full(N, np.nan)
