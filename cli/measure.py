@@ -322,9 +322,11 @@ def _truth_summary(res, truth, ref):
             "tracks_off_surface": int((te.material_face < 0).sum()),
            "occluded_observations": occluded_observations(res.uv, truth)}
     if te.aligned is not None:
-        import numpy as np
+        from heartcv.evaluate import displacement_consistency
 
         R = te.truth_from_rig[:3, :3]
+        dc = displacement_consistency(res.positions, res.covariances, te.true_positions, res.birth_frame, R)
+        out.update({"displacement_error_rms_m": dc["rms_m"], "displacement_nees_per_dof": dc["nees_per_dof"]})
         out.update({"aligned_error_rms_m": te.aligned.rms_m, "aligned_error_p99_m": te.aligned.p99_m,
                     "aligned_error_mean_m": te.aligned.mean_m, "aligned_error_max_m": te.aligned.max_m,
                     "rig_gauge_rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))),

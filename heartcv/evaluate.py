@@ -17,7 +17,7 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["TruthErrors", "truth_errors", "occluded_observations", "rigid_fit"]
+__all__ = ["TruthErrors", "truth_errors", "occluded_observations", "rigid_fit", "displacement_consistency"]
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,7 @@ class TruthErrors:
                                   frame (camera 0 as calibrated differs from the true camera 0 by a small pose),
                                   not the errors of the motion
     truth_from_rig : ndarray (4, 4) or None   that transform
+    true_positions : ndarray (K, P, 3) or None  the true position of each track's material point per frame
     """
 
     errors: np.ndarray
@@ -46,6 +47,7 @@ class TruthErrors:
     n: int
     aligned: "TruthErrors | None" = None
     truth_from_rig: np.ndarray | None = None
+    true_positions: np.ndarray | None = None
 
 
 def _true_camera(truth, c) -> Camera:
@@ -103,6 +105,8 @@ def truth_errors(positions, uv_ref, birth_frame, truth, ref_camera=0) -> TruthEr
         V = np.asarray(verts, float)[:, faces[face[have]]]                        # (K, p, 3, 3)
         true_pos[:, have] = np.einsum("pj,kpjx->kpx", bary[have], V)
     plain = _errors(positions, true_pos, face)
+    plain = TruthErrors(*[getattr(plain, f) for f in ("errors", "material_face", "rms_m", "p99_m", "mean_m",
+                                                      "max_m", "n")], true_positions=true_pos)
     born = np.array([positions[b, p] for p, b in enumerate(birth_frame)]).reshape(P, 3)
     born_true = np.array([true_pos[b, p] for p, b in enumerate(birth_frame)]).reshape(P, 3)
     ok = np.isfinite(born).all(axis=1) & np.isfinite(born_true).all(axis=1)
@@ -112,7 +116,39 @@ def truth_errors(positions, uv_ref, birth_frame, truth, ref_camera=0) -> TruthEr
     moved = positions @ T[:3, :3].T + T[:3, 3]
     aligned = _errors(moved, true_pos, face)
     return TruthErrors(plain.errors, face, plain.rms_m, plain.p99_m, plain.mean_m, plain.max_m, plain.n,
-                       aligned, T)
+                       aligned, T, true_pos)
+
+
+def displacement_consistency(positions, covariances, true_positions, birth_frame, rotation=None) -> dict:
+    """Errors of the measured displacements from each track's reference position, and their consistency with
+    the covariances.
+
+    The estimators use a point's motion relative to its reference position (the birth-frame position), so a
+    constant error of a track (a matching bias that stays with the track) cancels; what remains is compared
+    with the covariance of a difference of two observations, ``C_k + C_b`` (independent frames). Returns
+    ``rms_m`` (3-D RMS of the displacement errors), ``nees_per_dof`` (mean of e^T (C_k + C_b)^-1 e / 3: 1 for
+    consistent covariances, below 1 for conservative ones) and ``n``. Frames where a track is born are left
+    out (zero displacement). ``rotation`` (3, 3) rotates the measurements into the truth frame (the aligned
+    gauge).
+    """
+    X = np.asarray(positions, float)
+    Cv = np.asarray(covariances, float)
+    if rotation is not None:
+        R = np.asarray(rotation, float)
+        X = X @ R.T
+        Cv = R @ Cv @ R.T
+    K, P = X.shape[:2]
+    cols = np.arange(P)
+    b = np.asarray(birth_frame, int)
+    de = (X - X[b, cols][None]) - (true_positions - true_positions[b, cols][None])
+    S = Cv + Cv[b, cols][None]
+    ok = np.isfinite(de).all(axis=2) & np.isfinite(S).all(axis=(2, 3)) & (np.arange(K)[:, None] != b[None])
+    if not ok.any():
+        return {"rms_m": float("nan"), "nees_per_dof": float("nan"), "n": 0}
+    e = de[ok]
+    z = np.einsum("ni,ni->n", e, np.linalg.solve(S[ok], e[..., None])[..., 0])
+    return {"rms_m": float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))), "nees_per_dof": float(z.mean() / 3),
+            "n": int(ok.sum())}
 
 
 def _errors(positions, true_pos, face) -> TruthErrors:

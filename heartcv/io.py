@@ -962,9 +962,22 @@ class FrameReader:
         return [r[0] for r in res], [r[1] for r in res if r[1]]
 
     def __iter__(self):
-        for k in self.frames:
-            images, problems = self.read(k)
-            yield k, images, problems
+        """Instants in order; the next instant's images are decoded while the caller works on the current one
+        (image folders; a video is read in sequence)."""
+        if self.source.kind != "images" or self._pool is None:
+            for k in self.frames:
+                images, problems = self.read(k)
+                yield k, images, problems
+            return
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(1) as ahead:
+            pending = ahead.submit(self.read, self.frames[0]) if self.frames else None
+            for i, k in enumerate(self.frames):
+                images, problems = pending.result()
+                if i + 1 < len(self.frames):
+                    pending = ahead.submit(self.read, self.frames[i + 1])
+                yield k, images, problems
 
 
 def read_timestamps(path, frame_names) -> np.ndarray:

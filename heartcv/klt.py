@@ -72,14 +72,23 @@ def track_from_template(tmpl_gray, cur_gray, uv_tmpl, tmpl_patches, uv_init, par
         return z, np.zeros(0, bool), np.zeros(0), np.zeros(0)
     win = (params.window, params.window)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon_px)
-    p0 = np.ascontiguousarray(uv_tmpl, np.float32).reshape(-1, 1, 2)
     guess = np.where(np.isfinite(uv_init), uv_init, uv_tmpl)
-    p1 = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2)
-    p1, st, _ = cv2.calcOpticalFlowPyrLK(tmpl_gray, cur_gray, p0, p1, winSize=win, maxLevel=params.levels,
+    # both images cropped to the points' bounding box plus the reach of the coarsest pyramid level (the
+    # pyramids are rebuilt on every call: cropping is what keeps this cheap)
+    x0, y0, x1, y1 = _crop_box(np.concatenate([uv_tmpl, guess]), tmpl_gray.shape, params)
+    off = np.array([x0, y0], np.float32)
+    a = np.ascontiguousarray(tmpl_gray[y0:y1, x0:x1])
+    b = np.ascontiguousarray(cur_gray[y0:y1, x0:x1])
+    p0 = (np.asarray(uv_tmpl, np.float32) - off).reshape(-1, 1, 2)
+    p1 = (np.asarray(guess, np.float32) - off).reshape(-1, 1, 2)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, p1, winSize=win, maxLevel=params.levels,
                                          criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     back = p0.copy()
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(cur_gray, tmpl_gray, p1, back, winSize=win, maxLevel=params.levels,
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, p1, back, winSize=win, maxLevel=params.levels,
                                             criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p0 = p0 + off
+    p1 = p1 + off
+    back = back + off
     uv = p1.reshape(-1, 2).astype(float)
     fb = np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1).astype(float)
     cur = sample_patches(np.asarray(cur_gray, np.float32), uv, patch_offsets(params.ncc_radius))
@@ -88,3 +97,16 @@ def track_from_template(tmpl_gray, cur_gray, uv_tmpl, tmpl_patches, uv_init, par
         & (np.nan_to_num(score, nan=-1.0) >= params.min_ncc)
     uv[~ok] = np.nan
     return uv, ok, fb, score
+
+
+def _crop_box(uv, shape, params: LKParams, motion_px=48):
+    """Integer crop ``(x0, y0, x1, y1)`` holding every point with room for the LK window at the coarsest level
+    and ``motion_px`` of motion."""
+    H, W = shape[:2]
+    pad = (params.window // 2 + 2) * 2 ** params.levels + motion_px
+    finite = np.isfinite(uv).all(axis=1)
+    if not finite.any():
+        return 0, 0, W, H
+    lo = np.floor(uv[finite].min(axis=0) - pad).astype(int)
+    hi = np.ceil(uv[finite].max(axis=0) + pad).astype(int)
+    return max(lo[0], 0), max(lo[1], 0), min(hi[0], W), min(hi[1], H)
