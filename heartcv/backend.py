@@ -45,7 +45,24 @@ class OpenCVBackend:
         return sample_at(level_image, pts)
 
     def patch_ncc(self, level_image, ref_samples, pts):
-        return ncc(ref_samples, sample_at(level_image, pts))
+        b = sample_at(level_image, pts)
+        a = np.asarray(ref_samples, np.float32)
+        if a.ndim != b.ndim or a.shape[-2] != 1 or b.ndim < 2:
+            return ncc(a, b)
+        # one reference patch against many: normalise it once, then the cross term is a batched matmul
+        G = a.shape[-1]
+        a0 = a - a.mean(axis=-1, keepdims=True)
+        sa = np.sqrt((a0 * a0).sum(axis=-1, keepdims=True))
+        an = a0 / np.where(sa > 0, sa, 1.0)                                    # (..., 1, G)
+        sb = b.sum(axis=-1)
+        sbb = np.einsum("...g,...g->...", b, b)
+        cross = np.matmul(b, np.swapaxes(an, -1, -2))[..., 0]                  # sum(an * b)
+        var_b = np.maximum(sbb - sb * sb / G, 0.0)
+        std_b = np.sqrt(var_b)
+        flat = (sa[..., 0] < 1e-3 * np.sqrt(G)) | (std_b < 1e-3 * np.sqrt(G))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.where(flat, 0.0, cross / np.where(std_b > 0, std_b, 1.0))
+        return np.where(np.isnan(sb), np.nan, out).astype(np.float32)
 
     def corner_response(self, gray, block_size=7):
         import cv2

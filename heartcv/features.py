@@ -201,25 +201,24 @@ def sample_patches(image, uv, offsets) -> np.ndarray:
 
 
 def sample_at(image, pts) -> np.ndarray:
-    """Bilinear samples (float32 (...)) of ``image`` at pixel positions ``pts`` (..., 2); NaN outside."""
+    """Bilinear samples (float32 (...)) of ``image`` at pixel positions ``pts`` (..., 2); NaN where a sample
+    needs a pixel outside the image (``cv2.remap`` with a NaN constant border)."""
     import cv2
 
-    pts = np.asarray(pts)
+    pts = np.asarray(pts, np.float32)
     shape = pts.shape[:-1]
-    flat = pts.reshape(-1, 2).astype(np.float32)
-    n = flat.shape[0]
-    width = 4096
-    pad = (-n) % width
-    mx = np.pad(flat[:, 0], (0, pad), constant_values=-10).reshape(-1, width)
-    my = np.pad(flat[:, 1], (0, pad), constant_values=-10).reshape(-1, width)
-    out = np.empty(0, np.float32)
-    if n:
-        img = np.asarray(image, np.float32)
-        out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        out = out.reshape(-1)[:n]
-    H, W = np.asarray(image).shape[:2]
-    inside = (flat[:, 0] >= 0) & (flat[:, 0] <= W - 1) & (flat[:, 1] >= 0) & (flat[:, 1] <= H - 1)
-    out = np.where(inside, out, np.nan)
+    n = int(np.prod(shape))
+    if n == 0:
+        return np.empty(shape, np.float32)
+    cols = shape[-1] if len(shape) >= 2 and shape[-1] <= 4096 else 1
+    flat = pts.reshape(-1, cols, 2)
+    img = np.asarray(image, np.float32)
+    rows = 30000                                   # cv2.remap: output sides below 32767
+    out = np.empty(flat.shape[:2], np.float32)
+    for a in range(0, flat.shape[0], rows):
+        blk = flat[a:a + rows]
+        out[a:a + rows] = cv2.remap(img, np.ascontiguousarray(blk[..., 0]), np.ascontiguousarray(blk[..., 1]),
+                                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     return out.reshape(shape)
 
 

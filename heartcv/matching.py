@@ -138,6 +138,7 @@ def _scores(backend, cameras, ref, images, origins, centre_dirs, axis_dirs, h, o
     C = len(cameras)
     out = np.full((N, J, C), np.nan, np.float32)
     rays = np.concatenate([centre_dirs[:, None, :], axis_dirs], axis=1)             # (N, 3, 3)
+    offsets = np.asarray(offsets, np.float32)
     for a in range(0, N, chunk):
         sl = slice(a, a + chunk)
         P = _plane_points(origins[sl], rays[sl], X0[sl], normals[sl])                # (n, J, 3, 3)
@@ -145,10 +146,14 @@ def _scores(backend, cameras, ref, images, origins, centre_dirs, axis_dirs, h, o
             if c == ref or images[c] is None:
                 continue
             uv = cam.project(P.reshape(-1, 3)).reshape(P.shape[:3] + (2,))          # (n, J, 3, 2)
-            A = (uv[:, :, 1:, :] - uv[:, :, :1, :]) / h                            # rows: d uv / d du, d uv / d dv
-            grid = (uv[:, :, :1, :] + offsets[:, 0, None] * A[:, :, None, 0, :]
-                    + offsets[:, 1, None] * A[:, :, None, 1, :])                   # (n, J, G, 2)
-            out[sl, :, c] = backend.patch_ncc(images[c], ref_samples[sl][:, None, :], _pyramid_coords(grid, level))
+            f = 2.0 ** level
+            A = ((uv[:, :, 1:, :] - uv[:, :, :1, :]) / (h * f)).astype(np.float32)   # level px per full px
+            centre = ((uv[:, :, :1, :] + 0.5) / f - 0.5).astype(np.float32)          # (n, J, 1, 2), level px
+            grid = np.empty(A.shape[:2] + (len(offsets), 2), np.float32)                # (n, J, G, 2)
+            np.multiply(offsets[:, 0, None], A[:, :, None, 0, :], out=grid)
+            grid += offsets[:, 1, None] * A[:, :, None, 1, :]
+            grid += centre
+            out[sl, :, c] = backend.patch_ncc(images[c], ref_samples[sl][:, None, :], grid)
     return out
 
 
@@ -245,8 +250,8 @@ def local_planes(uv_ref, seed_uv, seed_points, origins, dirs, k=10, max_px=200.0
 
 def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coarse_radius=4, step_px=1.0,
                  fine_step_px=0.2, fine_span_px=None, min_ncc=0.85, min_views=2, max_candidates=4000,
-                 depth_range=None, tilt_deg=(0.0, 30.0), surface_passes=3, surface_span_px=(16.0, 8.0, 4.0),
-                 max_seeds=48, refine_tilt_deg=(12.0, 6.0, 3.0), refine_span_px=2.0, min_ncc_two_view=0.95,
+                 depth_range=None, tilt_deg=(0.0, 30.0), surface_passes=2, surface_span_px=(16.0, 6.0, 3.0),
+                 max_seeds=48, refine_tilt_deg=(12.0, 6.0, 3.0), refine_span_px=1.0, min_ncc_two_view=0.95,
                  max_plane_dev_m=0.003, pyramids=None,
                  backend=None) -> MatchResult:
     """Match corners of the reference camera in every other camera by a plane sweep (module docstring).
@@ -325,15 +330,23 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     others = [c for c in range(C) if c != ref and images[c] is not None]
 
     def fine(sub, t_center, normals, span):
+        """Full-resolution sweep over +- span px: steps of max(fine_step_px, span / 8), then, if coarser than
+        fine_step_px, fine_step_px steps over +- one coarse step around the best; parabola on the last."""
         dt = _depth_per_pixel(cameras, ref, o[sub], d[sub], t_center)
-        m = int(np.ceil(span / fine_step_px))
-        steps = np.arange(-m, m + 1) * fine_step_px
-        cand = t_center[:, None] + steps[None, :] * dt[:, None]
-        comb, per_cam = _sweep(backend, cameras, ref, full, o[sub], d[sub], uv0[sub], cand, normals, radius, 0)
-        j = np.argmax(comb, axis=1)
-        off = _refine_parabola(comb, j)
-        t = t_center + (steps[j] + off * fine_step_px) * dt
-        return t, per_cam[np.arange(len(j)), j]
+        rows = np.arange(len(sub))
+        step = max(fine_step_px, span / 8.0)
+        t = t_center
+        while True:
+            m = int(np.ceil(span / step))
+            steps = np.arange(-m, m + 1) * step
+            cand = t[:, None] + steps[None, :] * dt[:, None]
+            comb, per_cam = _sweep(backend, cameras, ref, full, o[sub], d[sub], uv0[sub], cand, normals, radius, 0)
+            j = np.argmax(comb, axis=1)
+            if step <= fine_step_px * 1.0001:
+                off = _refine_parabola(comb, j)
+                return t + (steps[j] + off * step) * dt, per_cam[rows, j]
+            t = t + steps[j] * dt
+            span, step = step, fine_step_px
 
     def seed_sweep(sub):
         """Coarse sweep over the whole visible depth range and a few normals, then a fine sweep."""

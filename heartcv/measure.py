@@ -211,8 +211,8 @@ class Measurer:
             return gray
         import cv2
 
-        g = gray.astype(np.float32)
-        return np.clip(128.0 + 2.0 * (g - cv2.GaussianBlur(g, (0, 0), sig)), 0, 255).astype(np.uint8)
+        blur = cv2.GaussianBlur(gray, (0, 0), sig)                    # uint8 in, uint8 out (SIMD)
+        return cv2.addWeighted(gray, 2.0, blur, -2.0, 128.0)          # saturated to [0, 255]
 
     def _track(self, s, images):
         """Observations (P, C, 2) of the alive tracks in this frame (NaN where not accepted)."""
