@@ -1,0 +1,244 @@
+"""``heartcv measure`` on a small rendered sequence (3 cameras, 480x270, 10 frames, the true rig): the --json
+summary, and bad input. Isolated bad images (a missing or truncated file) are named in a warning and that camera
+is left out of that instant (exit 0); inconsistent input (frame counts, image size, camera names, inputs time
+range, output suffix, no such folder) exits 2 naming the culprit. Every failure leaves no output behind, and no
+run touches its inputs."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from cli.main import main
+from tests.heartcv.render_scenes import scene_dict, write_truth_model
+
+FRAMES = 10
+SUMMARY_KEYS = {"frames", "points_mean", "points_min", "reprojection_rms_px", "frames_per_s"}
+TRUTH_KEYS = {"error_rms_m", "error_p99_m"}
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """A 10-frame sequence of the default scene at 1/4 resolution (coarse truth model: ~5 s to render)."""
+    root = tmp_path_factory.mktemp("measure_render")
+    model = write_truth_model(root / "model.yaml", grid=(7, 5, 2))
+    scene = root / "scene.yaml"
+    scene.write_text(yaml.safe_dump(scene_dict(model, motion={"duration_s": 0.4})))
+    res = CliRunner().invoke(main, ["render", "sequence", str(scene), "-o", str(root / "seq"), "--frames",
+                                    str(FRAMES), "--workers", "2"])
+    assert res.exit_code == 0, res.output
+    return root / "seq"
+
+
+@pytest.fixture
+def case(tmp_path, rendered):
+    """A private copy of the sequence (cameras, timestamps.csv, inputs.csv), its rig, and an empty output folder."""
+    seq = tmp_path / "seq"
+    for cam in ("cam0", "cam1", "cam2"):
+        shutil.copytree(rendered / cam, seq / cam)
+    for name in ("timestamps.csv", "inputs.csv"):
+        shutil.copy(rendered / name, seq / name)
+    rig = tmp_path / "rig.yaml"
+    shutil.copy(rendered / "rig_truth.yaml", rig)
+    out = tmp_path / "out"
+    out.mkdir()
+    return {"seq": seq, "rig": rig, "out": out, "truth": rendered / "truth.npz", "root": tmp_path}
+
+
+def _snapshot(*paths):
+    """sha256 of every file under the given files/folders."""
+    files = {}
+    for p in paths:
+        for f in ([p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file())):
+            files[str(f)] = hashlib.sha256(f.read_bytes()).hexdigest()
+    return files
+
+
+def _measure(case, *extra, seq=None, rig=None, out=None):
+    """Run ``heartcv measure`` with -o out/meas.npz --csv out/meas.csv; check the inputs are unchanged."""
+    seq = case["seq"] if seq is None else seq
+    rig = case["rig"] if rig is None else rig
+    out = case["out"] / "meas.npz" if out is None else out
+    inputs = [p for p in (seq, rig) if Path(p).exists()]
+    before = _snapshot(*inputs)
+    res = CliRunner().invoke(main, ["measure", str(seq), "--rig", str(rig), "-o", str(out), "--csv",
+                                    str(case["out"] / "meas.csv"), "--points", "100", *map(str, extra)])
+    assert _snapshot(*inputs) == before, "heartcv measure changed its inputs"
+    return res
+
+
+def _assert_failed_cleanly(res, *words):
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output
+    for w in words:
+        assert str(w) in res.stderr, (w, res.stderr)
+
+
+def _assert_no_output(case):
+    left = sorted(p.name for p in case["out"].iterdir())
+    assert left == [], f"left behind: {left}"
+
+
+def _read_csv(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(line for line in fh if not line.startswith("#")))
+
+
+# -- a good run -------------------------------------------------------------------------------------------------
+def test_json_summary_keys_with_and_without_truth(case):
+    from tracker.io import read_measurements
+
+    res = _measure(case, "--json", "--truth", case["truth"])
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert SUMMARY_KEYS | TRUTH_KEYS <= set(s)
+    assert s["frames"] == FRAMES and s["points_min"] >= 3 and s["points_mean"] >= s["points_min"]
+    assert 0 < s["reprojection_rms_px"] < 0.5 and s["frames_per_s"] > 0
+    assert 0 < s["error_rms_m"] <= s["error_p99_m"] < 2e-3     # the phantom, seen through the true rig
+    assert sorted(p.name for p in case["out"].iterdir()) == ["meas.csv", "meas.npz"]   # no temporary files
+    mset = read_measurements(case["out"] / "meas.npz")
+    assert mset.positions.shape[:1] == (FRAMES,)
+    assert np.isfinite(mset.positions).all(axis=2).sum(axis=1).min() == s["points_min"]
+    assert len(_read_csv(case["out"] / "meas.csv")) == np.isfinite(mset.positions).all(axis=2).sum()
+
+    res = _measure(case, "--json")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert SUMMARY_KEYS <= set(s) and not TRUTH_KEYS & set(s)
+
+
+# -- isolated bad images: warn, leave that camera out of that instant, exit 0 ----------------------------------------
+def _views_in_frame(case, frame, camera):
+    """(rows of frame, of which use ``camera``) in the written CSV, and the rows of the frame before."""
+    rows = _read_csv(case["out"] / "meas.csv")
+    here = [r for r in rows if int(r["frame"]) == frame]
+    before = [r for r in rows if int(r["frame"]) == frame - 1]
+    using = [r for r in here if r[f"u_{camera}_px"] != ""]
+    return here, using, before
+
+
+def test_missing_frame_in_one_camera_is_left_out(case):
+    (case["seq"] / "cam1" / "000004.png").unlink()
+    res = _measure(case)
+    assert res.exit_code == 0, res.output
+    assert "cam1" in res.stderr and "000004" in res.stderr
+    here, using, before = _views_in_frame(case, 4, "cam1")
+    assert using == []                                       # nothing observed in the missing image
+    assert len(here) >= len(before) // 2 >= 1                # still triangulated from cam0 and cam2
+    assert all(int(r["views"]) == 2 for r in here)
+    _, using_next, _ = _views_in_frame(case, 5, "cam1")
+    assert using_next                                        # cam1 is used again in the next instant
+
+
+def test_missing_first_reference_image_starts_a_frame_later(case):
+    """Without cam0's first image nothing can be detected in frame 0: it is empty, tracking starts in frame 1."""
+    (case["seq"] / "cam0" / "000000.png").unlink()
+    res = _measure(case, "--json")
+    assert res.exit_code == 0, res.output
+    assert "cam0" in res.stderr and "000000" in res.stderr
+    s = json.loads(res.stdout)
+    assert s["frames"] == FRAMES and s["points_min"] == 0
+    here, _, _ = _views_in_frame(case, 0, "cam0")
+    later, _, _ = _views_in_frame(case, 1, "cam0")
+    assert here == [] and len(later) >= 3
+
+
+@pytest.mark.parametrize("camera", ["cam2", "cam0"])
+def test_truncated_image_is_named_and_left_out(case, camera):
+    """A PNG cut short in one camera (the reference camera cam0 included) is named in a warning; the other two
+    views carry that instant."""
+    bad = case["seq"] / camera / "000005.png"
+    data = bad.read_bytes()
+    bad.write_bytes(data[: len(data) // 2])
+    res = _measure(case)
+    assert res.exit_code == 0, res.output
+    assert f"{camera}/000005.png" in res.stderr and "truncated" in res.stderr
+    here, using, before = _views_in_frame(case, 5, camera)
+    assert using == []
+    assert len(here) >= len(before) // 2 >= 1
+    assert all(int(r["views"]) == 2 for r in here)
+
+
+# -- inconsistent input: exit 2, nothing written -------------------------------------------------------------------
+def test_different_frame_counts_exit_2_naming_the_counts(case):
+    for k in (7, 8, 9):
+        (case["seq"] / "cam2" / f"{k:06d}.png").unlink()
+    res = _measure(case)
+    _assert_failed_cleanly(res, "different frame counts", "cam0 10", "cam1 10", "cam2 7")
+    _assert_no_output(case)
+
+
+def test_rig_of_another_image_size_exit_2(case):
+    from heartcv.io import read_rig, write_rig
+    from heartcv.camera import Camera, Rig
+
+    rig = read_rig(case["rig"])
+    cams = list(rig.cameras)
+    c = cams[1]
+    cams[1] = Camera(c.name, 2 * c.width, 2 * c.height, np.diag([2.0, 2.0, 1.0]) @ c.K, c.dist, c.cam_from_rig)
+    write_rig(case["rig"], Rig(tuple(cams)))
+    res = _measure(case)
+    _assert_failed_cleanly(res, "cam1", "000000.png", "480x270", "960x540")
+    _assert_no_output(case)
+
+
+def test_rig_camera_names_not_in_sequence_exit_2(case):
+    from heartcv.camera import Rig
+    from heartcv.io import read_rig, write_rig
+    from dataclasses import replace
+
+    rig = read_rig(case["rig"])
+    write_rig(case["rig"], Rig(tuple(replace(c, name=n) for c, n in zip(rig.cameras, ("left", "cam1", "right")))))
+    res = _measure(case)
+    _assert_failed_cleanly(res, "'left'", "'right'", "cam0")
+    _assert_no_output(case)
+
+
+@pytest.mark.parametrize("where", ["option", "sequence"])
+def test_inputs_not_covering_the_frames_exit_2(case, where):
+    """Inputs sampled over 0..0.1 s for frames over 0..0.3 s, given by --inputs or as SEQUENCE/inputs.csv."""
+    short = "time_s,pressure_pa\n0.0,1000.0\n0.05,1500.0\n0.1,2000.0\n"
+    if where == "option":
+        path = case["root"] / "short_inputs.csv"
+        path.write_text(short)
+        res = _measure(case, "--inputs", path)
+    else:
+        path = case["seq"] / "inputs.csv"
+        path.write_text(short)
+        res = _measure(case)
+    _assert_failed_cleanly(res, path.name, "0..0.1 s", "0..0.3 s")
+    _assert_no_output(case)
+
+
+def test_nothing_trackable_exit_1_without_output(case):
+    """A mask over the black background: no point, exit 1 (the stage failed), nothing written."""
+    import cv2
+
+    mask = np.zeros((270, 480), np.uint8)
+    mask[5:60, 5:60] = 255
+    cv2.imwrite(str(case["root"] / "mask.png"), mask)
+    res = _measure(case, "--mask", case["root"] / "mask.png")
+    assert res.exit_code == 1, res.output
+    assert "no surface point could be tracked" in res.stderr and "Traceback" not in res.output
+    _assert_no_output(case)
+
+
+def test_output_not_npz_exit_2(case):
+    res = _measure(case, out=case["out"] / "meas.txt")
+    _assert_failed_cleanly(res, "meas.txt", ".npz")
+    _assert_no_output(case)
+
+
+def test_no_such_sequence_exit_2(case):
+    missing = case["root"] / "no_such_sequence"
+    res = _measure(case, seq=missing)
+    _assert_failed_cleanly(res, "no_such_sequence", "no such folder")
+    _assert_no_output(case)
