@@ -34,6 +34,12 @@ UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.32
 @click.option("--ref-camera", default=None, help="Camera where points are detected (default: the rig's first).")
 @click.option("--points", "max_points", type=click.IntRange(min=1), default=300, show_default=True,
               help="Points to keep tracked (new ones are detected when fewer than 80 % are seen).")
+@click.option("--min-distance", type=click.FloatRange(min=1), default=15.0, show_default=True, metavar="PX",
+              help="Least distance between detected corners (small images: e.g. 5).")
+@click.option("--corner-block", type=click.IntRange(min=2), default=7, show_default=True, metavar="PX",
+              help="Shi-Tomasi structure-tensor block size (small images: e.g. 3).")
+@click.option("--corner-quality", type=click.FloatRange(min=0, max=1, min_open=True), default=0.02,
+              show_default=True, help="Keep corners whose response is at least this fraction of the strongest.")
 @click.option("--frames", type=click.IntRange(min=2), default=None, help="Use only the first N frames.")
 @click.option("--backend", type=click.Choice(("opencv", "kornia")), default="opencv", show_default=True,
               help="Detection, description and matching on OpenCV/numpy or on torch tensors with kornia.")
@@ -50,8 +56,9 @@ UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.32
               help="Image decoding threads.")
 @json_opt
 @click.pass_context
-def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_camera, max_points, frames,
-            backend, device, pixel_sigma, highpass, truth_file, csv_file, workers, as_json):
+def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_camera, max_points, min_distance,
+            corner_block, corner_quality, frames, backend, device, pixel_sigma, highpass, truth_file, csv_file,
+            workers, as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
     name is the same instant) seen by the cameras of RIG, and write their positions and covariances per frame.
 
@@ -79,8 +86,9 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     ref = 0 if ref_camera is None else (names.index(ref_camera) if ref_camera in names else None)
     if ref is None:
         raise BadInput(f"--ref-camera: {ref_camera!r} is not a camera of {rig_file} ({names})")
-    for cam, f in source.missing():
-        log.warning("%s: no image for instant %s; that camera is left out of it", Path(sequence) / cam, f)
+    if source.missing():
+        log.info("%d camera images missing in %s (each is named when its frame is read)", len(source.missing()),
+                 sequence)
     count = source.n_frames if frames is None else min(frames, source.n_frames)
     if count < 2:
         raise BadInput(f"{sequence}: {count} frame(s); at least 2 expected")
@@ -101,6 +109,8 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     from heartcv.measure import MeasureOptions, Measurer
 
     opts = MeasureOptions(ref_camera=ref, max_points=max_points, pixel_sigma=pixel_sigma,
+                          min_distance_px=min_distance, corner_block_size=corner_block,
+                          corner_quality=corner_quality,
                           highpass_sigma=highpass or None, lk=LKParams())
     sizes = [c.size for c in rig.cameras]
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)

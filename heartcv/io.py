@@ -828,7 +828,8 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1) -> Fram
     cameras : sequence of str, optional
         Use these cameras, in this order (e.g. the rig file's names); default: all, in natural name order.
     max_missing_fraction : float
-        A camera may lack an image for at most this fraction of the instants (each such image is reported by
+        A camera may lack an image for at most this fraction of the instants, and for one instant in any case
+        (each such image is reported by
         :meth:`FrameSource.missing` and read as missing); more, and the cameras are taken to have different
         frame counts, which is an error.
 
@@ -859,7 +860,8 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1) -> Fram
         per_cam = [{p.stem: p for p in fs} for _, fs in entries]
         instants = sorted(set().union(*per_cam), key=natural_key)
         counts = [len(d) for d in per_cam]
-        if min(counts) < (1.0 - max_missing_fraction) * len(instants):
+        allowed = max(1, int(max_missing_fraction * len(instants)))
+        if min(counts) < len(instants) - allowed:
             raise HeartcvIOError(folder, "cameras with different frame counts: " + ", ".join(
                 f"{n} {c}" for n, c in zip(names, counts)) + f" ({len(instants)} instants in all)")
         files = tuple(tuple(d.get(i) for i in instants) for d in per_cam)
@@ -925,9 +927,11 @@ class FrameReader:
             self._pool.shutdown()
         return False
 
-    def _read_file(self, c, path):
+    def _read_file(self, c, path, k=None):
         if path is None:
-            return None, (f"{self.source.folder / self.source.camera_names[c]}: no image for this instant")
+            name = self.source.frame_names[k] if k is not None else "?"
+            return None, (f"{self.source.folder / self.source.camera_names[c] / name}.*: no image for instant "
+                          f"{name} in this camera")
         try:
             return read_image(path, self.mode, self.sizes[c]), None
         except HeartcvIOError as exc:
@@ -956,7 +960,8 @@ class FrameReader:
             raise RuntimeError("FrameReader: use it as a context manager")
         C = self.source.n_cameras
         if self.source.kind == "images":
-            res = list(self._pool.map(self._read_file, range(C), [self.source.files[c][k] for c in range(C)]))
+            res = list(self._pool.map(self._read_file, range(C), [self.source.files[c][k] for c in range(C)],
+                                      [k] * C))
         else:
             res = list(self._pool.map(self._read_video, range(C), [k] * C))
         return [r[0] for r in res], [r[1] for r in res if r[1]]

@@ -252,7 +252,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
                  fine_step_px=0.2, fine_span_px=None, min_ncc=0.85, min_views=2, max_candidates=4000,
                  depth_range=None, tilt_deg=(0.0, 30.0), surface_passes=2, surface_span_px=(16.0, 6.0, 3.0),
                  max_seeds=48, refine_tilt_deg=(12.0, 6.0, 3.0), refine_span_px=1.0, min_ncc_two_view=0.95,
-                 max_plane_dev_m=0.003, pyramids=None,
+                 max_plane_dev_m=0.003, refine_2d_px=1.0, pyramids=None,
                  backend=None) -> MatchResult:
     """Match corners of the reference camera in every other camera by a plane sweep (module docstring).
 
@@ -288,6 +288,10 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
         Verification: with three or more cameras, a point seen in only two needs this NCC in both; and a point
         whose depth lies farther than ``max_plane_dev_m`` from the plane through its matched neighbours is
         dropped (None: no such check).
+    refine_2d_px : float
+        Last, each other view's match is refined freely in 2-D (not along the epipolar curve): the warped
+        reference patch is compared at shifts of up to +- ``refine_2d_px`` pixels (quarter-pixel grid, then a
+        parabola per axis), so the triangulation's reprojection errors measure the matching error (0: off).
     depth_range : (near, far), optional
         Limit the search along the rays (metres from the reference camera's centre).
     pyramids : sequence of list, optional
@@ -454,6 +458,9 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
             continue
         p = cam.project(X)
         keep = view_ok[:, c]
+        if refine_2d_px > 0 and keep.any():
+            p[keep] = _refine_2d(backend, cameras, ref, c, full, o[keep], uv0[keep], X[keep], normals[keep],
+                                 radius, refine_2d_px)
         uv[idx[keep], c] = p[keep]
         score[idx, c] = np.where(np.isfinite(per_cam[:, c]), per_cam[:, c], np.nan)
     n_views = np.isfinite(uv).all(axis=2).sum(axis=1)
@@ -469,6 +476,47 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     uv[~ok] = np.nan
     uv[~ok, ref] = uv_ref[~ok]
     return MatchResult(uv, score, depth, pts, nrm, ok)
+
+
+def _refine_2d(backend, cameras, ref, c, images, origins, uv_ref, X, normals, radius, search_px, step=0.25):
+    """Free 2-D sub-pixel position (n, 2) in camera ``c`` of the reference patches warped through their planes:
+    NCC on a grid of shifts of +- ``search_px`` in ``step`` increments, then a parabola per axis."""
+    h = 1.0
+    side = np.stack([uv_ref + [h, 0.0], uv_ref + [0.0, h]], axis=1)
+    _, sd = cameras[ref].rays(side.reshape(-1, 2))
+    rays = np.concatenate([cameras[ref].rays(uv_ref)[1][:, None, :], sd.reshape(-1, 2, 3)], axis=1)
+    P = _plane_points(origins, rays, X[:, None, :], normals)[:, 0]                  # (n, 3, 3)
+    uv = cameras[c].project(P.reshape(-1, 3)).reshape(-1, 3, 2)
+    A = (uv[:, 1:] - uv[:, :1]) / h                                                 # (n, 2, 2)
+    offs = patch_offsets(radius).astype(np.float32)
+    ref_samples = backend.sample(images[ref], uv_ref[:, None, :] + offs[None])
+    m = int(round(search_px / step))
+    sh = np.arange(-m, m + 1) * step
+    dx, dy = np.meshgrid(sh, sh)
+    shifts = np.stack([dx.ravel(), dy.ravel()], axis=1)                              # (S, 2), row-major in y
+    base = uv[:, 0, None, None, :] + (offs[None, :, 0, None] * A[:, None, 0, :]
+                                      + offs[None, :, 1, None] * A[:, None, 1, :])[:, None]   # (n, 1, G, 2)
+    grid = (base + shifts[None, :, None, :]).astype(np.float32)                      # (n, S, G, 2)
+    sc = backend.patch_ncc(images[c], ref_samples[:, None, :], grid)                 # (n, S)
+    sc = np.where(np.isfinite(sc), sc, -np.inf)
+    k = len(sh)
+    best = np.argmax(sc, axis=1)
+    iy, ix = np.divmod(best, k)
+    S = sc.reshape(-1, k, k)
+    rows = np.arange(len(best))
+
+    def parabola(f0, fm, fp):
+        den = fm - 2 * f0 + fp
+        ok = np.isfinite(fm) & np.isfinite(fp) & (den < 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(ok, np.clip(0.5 * (fm - fp) / np.where(ok, den, 1.0), -0.5, 0.5), 0.0)
+
+    f0 = S[rows, iy, ix]
+    ox = parabola(f0, S[rows, iy, np.maximum(ix - 1, 0)], S[rows, iy, np.minimum(ix + 1, k - 1)])
+    oy = parabola(f0, S[rows, np.maximum(iy - 1, 0), ix], S[rows, np.minimum(iy + 1, k - 1), ix])
+    ox = np.where((ix == 0) | (ix == k - 1), 0.0, ox)
+    oy = np.where((iy == 0) | (iy == k - 1), 0.0, oy)
+    return uv[:, 0] + np.stack([sh[ix] + ox * step, sh[iy] + oy * step], axis=1)
 
 
 def _spread_subset(uv, m) -> np.ndarray:

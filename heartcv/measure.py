@@ -47,6 +47,8 @@ class MeasureOptions:
     ref_camera: int = 0
     max_points: int = 300
     min_distance_px: float = 15.0
+    corner_block_size: int = 7
+    corner_quality: float = 0.02
     refill_fraction: float = 0.8
     roi_margin_px: int = 15
     saturation_level: int = 250
@@ -282,7 +284,7 @@ class Measurer:
         if room <= 0:
             return 0
         uv, _ = detect_corners(gray, mask, max_points=room, min_distance=o.min_distance_px, exclude=exclude,
-                               backend=self.backend)
+                               block_size=o.corner_block_size, quality=o.corner_quality, backend=self.backend)
         if len(uv) == 0:
             return 0
         imgs = [None if im is None else np.asarray(im, np.float32) for im in images]

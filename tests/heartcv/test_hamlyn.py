@@ -179,7 +179,9 @@ def test_matches_agree_with_opencv_sgbm(frame, matched):
 
     pl = rectified(uv[m.ok], L, R1, P1)
     pr = rectified(m.uv[m.ok, 1], R, R2, P2)
-    assert np.median(np.abs(pl[:, 1] - pr[:, 1])) < 1e-6           # our matches lie on the epipolar lines
+    # our matches are refined freely in 2-D: they stay near the epipolar lines, off by the calibration's error
+    # (median epipolar distance of the free search above: 0.40 px)
+    assert np.median(np.abs(pl[:, 1] - pr[:, 1])) < 0.5
     ours = pl[:, 0] - pr[:, 0]
     theirs = cv2.remap(disparity, pl[:, :1].astype(np.float32), pl[:, 1:].astype(np.float32), cv2.INTER_LINEAR)
     theirs = theirs.ravel()
@@ -218,7 +220,8 @@ def cli_run(frame, tmp_path_factory):
     _write_sequence(root, frame["rig"])
     out = root / "meas.npz"
     args = ["measure", str(root / "seq"), "--rig", str(root / "rig.yaml"), "-o", str(out),
-            "--mask", str(DATA / "f7_dynamic_deint_mask_0100.png"), "--points", "200", "--json"]
+            "--mask", str(DATA / "f7_dynamic_deint_mask_0100.png"), "--points", "200", "--min-distance", "5",
+            "--corner-block", "3", "--corner-quality", "0.001", "--json"]
     return CliRunner().invoke(main, args), out
 
 
@@ -244,10 +247,6 @@ def test_cli_measure_runs_on_the_stereo_frame(cli_run):
     assert np.abs(d[:, 1]).max() < 0.05e-3
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "heartcv measure's detection is set for 1920x1080 (15 px spacing, 7 px Shi-Tomasi blocks, 2 % quality) and "
-    "the CLI exposes none of it: 6 points on this 360x288 frame. MeasureOptions(min_distance_px=5) plus "
-    "detect_corners(block_size=3, quality=0.001) give 53. Remove this mark once the CLI can pass them."))
 def test_cli_measure_acceptance_points(cli_run):
     from tracker.io import read_measurements
 
