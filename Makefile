@@ -3,13 +3,19 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# The torch that the `kornia` extra (`heartcv measure --backend kornia`) runs on, installed before the project so
+# that the extra finds it. Here pip's find-links hold a CPU wheel of this version; from PyPI on Linux the same spec
+# is the multi-gigabyte CUDA build. Point it at the build you want: a wheel file, or e.g.
+# `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
+TORCH ?= torch==2.13.0
 
 .PHONY: test test-slow demo bench clean-venv
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q $(TORCH)
+	$(PY) -m pip install -q -e '.[dev,kornia]'
 	touch $(STAMP)
 
 test: $(STAMP)
