@@ -54,11 +54,11 @@ class OpenCVBackend:
         a0 = a - a.mean(axis=-1, keepdims=True)
         sa = np.sqrt((a0 * a0).sum(axis=-1, keepdims=True))
         an = a0 / np.where(sa > 0, sa, 1.0)                                    # (..., 1, G)
-        sb = b.sum(axis=-1)
-        sbb = np.einsum("...g,...g->...", b, b)
-        cross = np.matmul(b, np.swapaxes(an, -1, -2))[..., 0]                  # sum(an * b)
-        var_b = np.maximum(sbb - sb * sb / G, 0.0)
-        std_b = np.sqrt(var_b)
+        mb = b.mean(axis=-1, keepdims=True)
+        b0 = b - mb                                   # centred first: no float32 cancellation on bright patches
+        std_b = np.sqrt(np.einsum("...g,...g->...", b0, b0))
+        cross = np.matmul(b0, np.swapaxes(an, -1, -2))[..., 0]                 # sum(an * b0)
+        sb = mb[..., 0]
         flat = (sa[..., 0] < 1e-3 * np.sqrt(G)) | (std_b < 1e-3 * np.sqrt(G))
         with np.errstate(invalid="ignore", divide="ignore"):
             out = np.where(flat, 0.0, cross / np.where(std_b > 0, std_b, 1.0))
