@@ -202,7 +202,8 @@ def sample_patches(image, uv, offsets) -> np.ndarray:
 
 def sample_at(image, pts) -> np.ndarray:
     """Bilinear samples (float32 (...)) of ``image`` at pixel positions ``pts`` (..., 2); NaN where a sample
-    needs a pixel outside the image (``cv2.remap`` with a NaN constant border)."""
+    needs a pixel outside the image (``cv2.remap`` with a NaN constant border: the valid domain is
+    [0, W - 1) x [0, H - 1), since a sample exactly on the last column or row weighs the border by zero)."""
     import cv2
 
     pts = np.asarray(pts, np.float32)

@@ -333,9 +333,11 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     rows = np.arange(n)
     others = [c for c in range(C) if c != ref and images[c] is not None]
 
-    def fine(sub, t_center, normals, span):
+    def fine(sub, t_center, normals, span, use=None):
         """Full-resolution sweep over +- span px: steps of max(fine_step_px, span / 8), then, if coarser than
-        fine_step_px, fine_step_px steps over +- one coarse step around the best; parabola on the last."""
+        fine_step_px, fine_step_px steps over +- one coarse step around the best; parabola on the last.
+        ``use``: the cameras to score (default all)."""
+        imgs = full if use is None else [im if (c == ref or c in use) else None for c, im in enumerate(full)]
         dt = _depth_per_pixel(cameras, ref, o[sub], d[sub], t_center)
         rows = np.arange(len(sub))
         step = max(fine_step_px, span / 8.0)
@@ -344,7 +346,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
             m = int(np.ceil(span / step))
             steps = np.arange(-m, m + 1) * step
             cand = t[:, None] + steps[None, :] * dt[:, None]
-            comb, per_cam = _sweep(backend, cameras, ref, full, o[sub], d[sub], uv0[sub], cand, normals, radius, 0)
+            comb, per_cam = _sweep(backend, cameras, ref, imgs, o[sub], d[sub], uv0[sub], cand, normals, radius, 0)
             j = np.argmax(comb, axis=1)
             if step <= fine_step_px * 1.0001:
                 off = _refine_parabola(comb, j)
@@ -407,20 +409,28 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
             t_fine[lone], per_cam[lone], normals[lone] = seed_sweep(lone)
             swept[lone] = True
 
-    # 3. normal refinement: rings of tilted normals around each point's normal, keep the best fine sweep
+    # 3. normal refinement: rings of tilted normals around each point's normal, keep the best fine sweep; each
+    #    point is scored on the cameras that currently accept it (a camera that sees something else must not
+    #    pull the normal), grouped by that set of cameras
+    def accepted(pc):
+        return np.nan_to_num(pc[:, others], nan=-1.0) >= min_ncc if others else np.zeros((len(pc), 0), bool)
+
+    acc = accepted(per_cam)
     for tilt in refine_tilt_deg:
-        sub = np.flatnonzero(np.isfinite(t_fine))
-        if sub.size == 0:
-            break
-        hyp = normal_hypotheses(normals[sub], (0.0, tilt))
-        best = mean_score(per_cam[sub])
-        for h in range(1, hyp.shape[1]):
-            t2, pc2 = fine(sub, t_fine[sub], hyp[:, h], refine_span_px)
-            sc = mean_score(pc2)
-            better = sc > best
-            u = sub[better]
-            t_fine[u], per_cam[u], normals[u] = t2[better], pc2[better], hyp[better, h]
-            best[better] = sc[better]
+        live = np.isfinite(t_fine)
+        for pattern in {tuple(r) for r in acc[live]}:
+            use = [c for c, on in zip(others, pattern) if on] or others
+            sub = np.flatnonzero(live & np.all(acc == pattern, axis=1))
+            hyp = normal_hypotheses(normals[sub], (0.0, tilt))
+            best = np.where(np.isfinite(per_cam[sub][:, use]), per_cam[sub][:, use], -1.0).mean(axis=1)
+            for h in range(1, hyp.shape[1]):
+                t2, pc2 = fine(sub, t_fine[sub], hyp[:, h], refine_span_px, use=use)
+                sc = np.where(np.isfinite(pc2[:, use]), pc2[:, use], -1.0).mean(axis=1)
+                better = sc > best
+                u = sub[better]
+                t_fine[u], normals[u] = t2[better], hyp[better, h]
+                per_cam[u[:, None], use] = pc2[better][:, use]
+                best[better] = sc[better]
 
     # 4. verification: per-view NCC, a stricter NCC when only two views agree, and the depth must lie near the
     #    plane through the point's matched neighbours (leave-one-out), which removes gross depth errors
@@ -435,6 +445,16 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
                         >= min_ncc_two_view, axis=1)
         view_ok[two & ~strict] = False
         view_ok[two & ~strict, ref] = True
+    # points that lost a camera: depth again from the accepted cameras alone (the rejected one's scores would
+    # otherwise still pull the combined optimum)
+    partial = np.isfinite(t_fine) & (view_ok.sum(axis=1) >= 2) & (view_ok[:, others].sum(axis=1) < len(others))
+    for pattern in {tuple(r) for r in view_ok[partial][:, others]}:
+        use = [c for c, on in zip(others, pattern) if on]
+        sub = np.flatnonzero(partial & np.all(view_ok[:, others] == pattern, axis=1))
+        t2, pc2 = fine(sub, t_fine[sub], normals[sub], 1.0, use=use)
+        keep = np.all(np.nan_to_num(pc2[:, use], nan=-1.0) >= min_ncc, axis=1)
+        t_fine[sub[keep]] = t2[keep]
+        per_cam[sub[keep][:, None], use] = pc2[keep][:, use]
     good = np.isfinite(t_fine) & (view_ok.sum(axis=1) >= min_views)
     X = o + t_fine[:, None] * d
     if max_plane_dev_m is not None and good.sum() >= 5:

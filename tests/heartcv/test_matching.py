@@ -101,9 +101,9 @@ def test_a_camera_with_unrelated_content_is_never_matched(gentle, bad, kind):
     image): its view must not be matched, and a point kept in the two remaining views must pass the stricter
     two-view NCC and be the right point.
 
-    The two-view points are less precise (measured: up to 0.3 px in uv, 0.7 px-equivalent in depth) than the
-    three-view ones (0.05 px): the depth and normal are still chosen by the mean NCC over both other cameras,
-    the unrelated one included."""
+    The normal refinement and a last depth sweep use only the cameras that accept the point, so the two-view
+    points stay precise (measured: 0.098 / 0.087 px in uv, 0.090 / 0.079 px-equivalent in depth; when the
+    rejected camera still took part: 0.3 px and 0.7 px)."""
     import cv2
     import dataclasses
 
@@ -122,8 +122,10 @@ def test_a_camera_with_unrelated_content_is_never_matched(gentle, bad, kind):
     assert np.isnan(m.points[~m.ok]).all() and np.isnan(m.uv[~m.ok, good]).all()
     X_true = scene.surface_point(0, uv[m.ok], 0)
     cam = scene.cameras[good]
-    assert np.linalg.norm(m.uv[m.ok, good] - cam.project(X_true), axis=1).max() < 0.5
-    assert np.linalg.norm(cam.project(m.points[m.ok]) - cam.project(X_true), axis=1).max() < 1.0
+    e_uv = np.linalg.norm(m.uv[m.ok, good] - cam.project(X_true), axis=1).max()
+    e_depth = np.linalg.norm(cam.project(m.points[m.ok]) - cam.project(X_true), axis=1).max()
+    assert e_uv < 0.15
+    assert e_depth < 0.15
 
 
 def test_match_points_input_checks(gentle):
