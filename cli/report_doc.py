@@ -1,0 +1,111 @@
+"""The text of a ``heartcv report`` folder: ``summary.md`` and ``index.html`` from the metrics.json document.
+
+``index.html`` stands alone: every figure is embedded as a base64 data URI and linked to its PNG beside it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tracker.params import NAMES, UNITS
+
+__all__ = ["markdown", "html", "mm"]
+
+PARAMETER_HEAD = ["estimator", "parameter", "value", "truth", "unit"]
+
+
+def mm(v, digits=4):
+    return "–" if v is None else f"{v * 1e3:.{digits}g} mm"
+
+
+def _num(v, fmt="{:.4g}"):
+    return "–" if v is None else fmt.format(v)
+
+
+def _rows(doc) -> tuple[list, list]:
+    """Header and rows of the per-estimator table (display units)."""
+    head = ["estimator", "steps", "pred. error mean", "pred. error std", "pred. error RMS", "truth error mean",
+            "NIS mean / dof", "NIS in band", "step median", "step p95"]
+    rows = []
+    for label, e in doc["estimators"].items():
+        steps = f"{e['completed_steps']}/{e['steps']}" + (" (partial)" if e["partial"] else "")
+        rows.append([label, steps, mm(e["prediction_error_mean_m"]), mm(e["prediction_error_std_m"]),
+                     mm(e["prediction_error_rms_m"]), mm(e["truth_error_mean_m"]),
+                     f"{_num(e['nis_mean'])} / {_num(e['nis_mean_dof'], '{:g}')}",
+                     _num(e["nis_in_band_fraction"], "{:.0%}"),
+                     _num(None if e["step_time_median_s"] is None else e["step_time_median_s"] * 1e3, "{:.3g} ms"),
+                     _num(None if e["step_time_p95_s"] is None else e["step_time_p95_s"] * 1e3, "{:.3g} ms")])
+    return head, rows
+
+
+def _parameter_rows(doc) -> list:
+    rows = []
+    for label, e in doc["estimators"].items():
+        truth = e["theta_truth_final"]
+        for n in e["estimated"]:
+            rows.append([label, n, f"{_num(e['theta_final'][n])} ± {_num(e['theta_std_final'][n], '{:.2g}')}",
+                         _num(truth[n]) if truth else "–", UNITS[NAMES.index(n)]])
+    return rows
+
+
+def _facts(doc) -> list:
+    s = doc["sequence"]
+    facts = [f"Sequence: {s['frames']} frames over {s['duration_s']:.4g} s, {s['points']} points"
+             + (" (mixed sequences: --allow-mixed)" if s["mixed"] else "") + "."]
+    noise = doc["measurement_noise_m"]
+    facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']})."
+                 if noise is not None else "Measurement noise: unknown (give --measurements).")
+    for key, what in (("ratio_ge_to_kf_prediction_error", "prediction error"),
+                      ("ratio_ge_to_kf_truth_error", "truth error")):
+        if doc[key] is not None:
+            facts.append(f"GE / KF mean {what}: {doc[key]:.3f}.")
+    tr = doc["truth"]
+    facts.append(f"Truth: {tr['kind']} ({doc['inputs']['truth']})." if tr["kind"] else "Truth: none given.")
+    facts += [f"Note: {n}" for n in tr["notes"]]
+    facts.append("Errors are Euclidean norms per point; overall means over frames k ≥ 1 (frame 0 is predicted "
+                 "from the prior).")
+    return facts
+
+
+def markdown(doc, figures) -> str:
+    head, rows = _rows(doc)
+    lines = ["# heartcv report", ""] + [f"- {f}" for f in _facts(doc)] + ["", "## Estimators", ""]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
+    prow = _parameter_rows(doc)
+    if prow:
+        lines += ["", "## Final parameters (mean ± std)", "", "| " + " | ".join(PARAMETER_HEAD) + " |",
+                  "|" + "---|" * len(PARAMETER_HEAD)] + ["| " + " | ".join(r) + " |" for r in prow]
+    lines += ["", "## Figures", ""]
+    for name, caption in figures:
+        lines += [f"![{name}]({name})", "", f"*{name}*: {caption}", ""]
+    lines += ["Inputs:", ""] + [f"- `{v}` ({k})" for k, v in doc["inputs"]["estimates"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def html(doc, figures, folder: Path) -> str:
+    """index.html: the summary with every figure embedded as a base64 data URI (the file stands alone) and
+    linked to its PNG beside it."""
+    import base64
+    from html import escape
+
+    def table(head, rows):
+        return ("<table><tr>" + "".join(f"<th>{escape(h)}</th>" for h in head) + "</tr>"
+                + "".join("<tr>" + "".join(f"<td>{escape(c)}</td>" for c in r) + "</tr>" for r in rows) + "</table>")
+
+    prow = _parameter_rows(doc)
+    ptable = ("<h2>Final parameters (mean ± std)</h2>" + table(PARAMETER_HEAD, prow)) if prow else ""
+    figs = []
+    for name, caption in figures:
+        data = base64.b64encode((folder / name).read_bytes()).decode("ascii")
+        figs.append(f'<figure><img src="data:image/png;base64,{data}" alt="{escape(name)}">'
+                    f'<figcaption><a href="{escape(name)}">{escape(name)}</a>: {escape(caption)}</figcaption>'
+                    "</figure>")
+    facts = "".join(f"<li>{escape(f)}</li>" for f in _facts(doc))
+    style = ("body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}"
+             "table{border-collapse:collapse;font-size:90%}td,th{border:1px solid #ccc;padding:3px 8px;"
+             "text-align:right}td:first-child,th:first-child{text-align:left}figure{margin:2em 0}"
+             "img{max-width:100%}figcaption{font-size:90%;color:#444}")
+    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>heartcv report</title>"
+            f"<style>{style}</style></head><body><h1>heartcv report</h1><ul>{facts}</ul><h2>Estimators</h2>"
+            f"{table(*_rows(doc))}{ptable}<h2>Figures</h2>{''.join(figs)}<p>Numbers: <a href=\"metrics.json\">metrics.json</a>, "
+            "<a href=\"summary.md\">summary.md</a>.</p></body></html>\n")

@@ -1,0 +1,372 @@
+"""Figures of ``heartcv report`` (matplotlib, Agg; no pyplot state): prediction error per step (the paper's
+Fig. 4), parameter trajectories with ±2σ bands, NIS per degree of freedom with its χ² bands, error against
+ground truth, step times.
+
+Every function takes plain arrays keyed by a series label and returns a ``matplotlib.figure.Figure``; the
+house style (colours per estimator, legend below the axes, SI prefixes) is that of :mod:`cli.plots`.
+Lengths are drawn in mm, times in s and ms.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .plots import TITLES, _y_scale, si_scale
+
+__all__ = ["prediction_error_figure", "parameter_figure", "nis_figure", "truth_error_figure",
+           "step_time_figure", "series_name", "write_figures", "CAPTIONS"]
+
+MM = 1e3  # m -> mm
+_SIZE = (6.4, 4.0)
+_NOISE_STYLE = {"color": "0.35", "ls": ":", "lw": 1.3}
+
+
+def series_name(label: str) -> str:
+    """Legend name of a series label: ``'ge'`` -> ``'GE'``, ``'ge:run2'`` -> ``'GE (run2)'``."""
+    est, _, tag = label.partition(":")
+    return est.upper() + (f" ({tag})" if tag else "")
+
+
+def _figure(nrows=1, size=_SIZE, sharex=True):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size, layout="constrained")
+    axes = fig.subplots(nrows, 1, sharex=sharex, squeeze=False)[:, 0]
+    return fig, axes
+
+
+def _style(ax, xlabel=None):
+    ax.grid(True, which="major", alpha=0.3)
+    ax.spines[["top", "right"]].set_visible(False)
+    if xlabel:
+        ax.set_xlabel(xlabel)
+
+
+def _legend(fig, handles, ncol=None):
+    if handles:
+        fig.legend(handles=handles, loc="outside lower center", ncol=ncol or min(len(handles), 4), fontsize=8,
+                   frameon=False)
+
+
+def _z(i: int) -> float:
+    """zorder of series i: the first series (the estimator of interest) is drawn on top."""
+    return 3.0 - i / 100.0
+
+
+def _with_mean(label: str, overall: float) -> str:
+    name = series_name(label)
+    return f"{name} (mean {overall * MM:#.3g} mm, k ≥ 1)" if np.isfinite(overall) else name
+
+
+def _hline(ax, y, t, color):
+    """A dashed level (an average) over the time range of its own series (a partial run ends early)."""
+    t = np.asarray(t, float)
+    if t.size:
+        ax.hlines(y, t[0], t[-1], colors=color, lw=1.0, ls="--", alpha=0.8, zorder=1.5)
+
+
+def _xlim(ax, series_times):
+    ts = [np.asarray(t, float) for t in series_times if len(t)]
+    if ts:
+        lo, hi = min(t[0] for t in ts), max(t[-1] for t in ts)
+        if hi > lo:
+            ax.set_xlim(lo, hi)
+
+
+def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None = None):
+    """Mean (top) and variance (bottom) over the seen points of the one-step prediction error norm per step.
+
+    Parameters
+    ----------
+    series : dict label -> (times (K,), mean (K,) m, var (K,) m^2, overall mean m)
+        The overall mean (steps k ≥ 1) is drawn as a dashed line and quoted in the legend.
+    colors : dict label -> colour
+    noise_norm : float, optional
+        Mean norm of the measurement noise, E|v| (m): a dotted reference line, the error of a perfect
+        predictor.
+    """
+    from matplotlib.lines import Line2D
+
+    fig, (top, bottom) = _figure(2, size=(6.4, 5.2))
+    handles = []
+    for i, (label, (t, mean, var, overall)) in enumerate(series.items()):
+        c, z = colors[label], _z(i)
+        top.plot(t, np.asarray(mean) * MM, color=c, lw=1.6, marker="o", ms=2.5, zorder=z)
+        bottom.plot(t, np.asarray(var) * MM**2, color=c, lw=1.6, marker="o", ms=2.5, zorder=z)
+        txt = _with_mean(label, overall)
+        if np.isfinite(overall):
+            _hline(top, overall * MM, t, c)
+        handles.append(Line2D([], [], color=c, lw=1.6, marker="o", ms=2.5, label=txt))
+    if noise_norm is not None and np.isfinite(noise_norm):
+        top.axhline(noise_norm * MM, **_NOISE_STYLE)
+        handles.append(Line2D([], [], **_NOISE_STYLE, label=f"measurement noise E|v| = {noise_norm * MM:#.3g} mm"))
+    handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="overall mean"))
+    top.set_ylabel(r"mean $|y - \hat{y}|$ [mm]")
+    bottom.set_ylabel(r"variance of $|y - \hat{y}|$ [mm²]")
+    for ax in (top, bottom):
+        _style(ax)
+        ax.set_ylim(bottom=0)
+    bottom.set_xlabel("time [s]")
+    _xlim(bottom, [s[0] for s in series.values()])
+    _legend(fig, handles, ncol=2)
+    return fig
+
+
+def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=None):
+    """Posterior mean of one parameter per estimator with its ±2σ band, and the truth if given.
+
+    Parameters
+    ----------
+    name : str
+        Parameter name (``tracker.params.NAMES``).
+    unit : str
+        Its SI unit (``tracker.params.UNITS``); Pa and s get an SI prefix from the data.
+    series : dict label -> (times (K,), mean (K,), std (K,))
+    truth : (times, values), optional
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    values = [np.asarray(m) for _, m, _ in series.values()] + ([np.asarray(truth[1])] if truth is not None else [])
+    scale, pu = si_scale(np.concatenate(values) if values else [], unit)
+    fig, (ax,) = _figure()
+    handles = []
+    for i, (label, (t, mean, std)) in enumerate(series.items()):
+        c = colors[label]
+        m, s = np.asarray(mean) * scale, np.asarray(std) * scale
+        if np.nanmax(s, initial=0.0) > 0:
+            ax.fill_between(t, m - 2 * s, m + 2 * s, color=c, alpha=0.18, lw=0)
+        ax.plot(t, m, color=c, lw=1.8, zorder=_z(i))
+        handles.append(Line2D([], [], color=c, lw=1.8, label=series_name(label)))
+    if any(np.nanmax(np.asarray(s), initial=0.0) > 0 for _, _, s in series.values()):
+        handles.append(Patch(color="0.6", alpha=0.35, label="±2σ"))
+    if truth is not None:
+        ax.plot(truth[0], np.asarray(truth[1]) * scale, color="k", lw=1.2, ls="--", zorder=4)
+        handles.append(Line2D([], [], color="k", lw=1.2, ls="--", label="truth"))
+    unit_txt = "" if pu in ("", "1") else f" [{pu.replace('^3', '³')}]"
+    ax.set_ylabel(f"{TITLES.get(name, name)}{unit_txt}")
+    ax.ticklabel_format(axis="y", useOffset=False)
+    _style(ax, "time [s]")
+    _xlim(ax, [s[0] for s in series.values()])
+    _legend(fig, handles)
+    return fig
+
+
+def nis_figure(series: dict, colors: dict, step_band, mean_band=None, level: float = 0.95):
+    """NIS per degree of freedom per step, with the per-step χ² band (light) and the band of the time
+    average (dark); each estimator's time average Σ NIS / Σ dof as a dashed line.
+
+    Parameters
+    ----------
+    series : dict label -> (times (K,), nis (K,), dof (K,))
+    step_band : (times, lo (K,), hi (K,), dof (K,))
+        Per-step band of the NIS (not divided), drawn divided by its dof.
+    mean_band : (lo, hi, mean dof), optional
+        Band of the time-averaged NIS and the mean dof it is divided by.
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    fig, (ax,) = _figure()
+    handles = []
+    pct = f"{level * 100:g} %"
+    t, lo, hi, dof = (np.asarray(a, float) for a in step_band)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lo_d, hi_d = lo / dof, hi / dof
+    ax.fill_between(t, lo_d, hi_d, step="mid", color="0.9", lw=0, zorder=0)
+    d_const = np.unique(dof[dof >= 1])
+    dof_txt = f"χ²({int(d_const[0])})" if d_const.size == 1 else "χ²(dof_k)"
+    handles.append(Patch(color="0.9", label=f"{pct} band per step, {dof_txt}"))
+    if mean_band is not None:
+        mlo, mhi, mdof = mean_band
+        ax.axhspan(mlo / mdof, mhi / mdof, color="0.72", lw=0, zorder=0.5)
+        handles.append(Patch(color="0.72", label=f"{pct} band of the time average"))
+    ax.axhline(1.0, color="0.25", ls=":", lw=1.2, zorder=1)
+    handles.append(Line2D([], [], color="0.25", ls=":", lw=1.2, label="expected (1)"))
+    ys = [lo_d, hi_d]
+    for i, (label, (ts, nis, d)) in enumerate(series.items()):
+        c = colors[label]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            y = np.where(np.asarray(d) >= 1, np.asarray(nis, float) / np.asarray(d, float), np.nan)
+        ax.plot(ts, y, color=c, lw=1.6, marker="o", ms=2.5, zorder=_z(i))
+        ok = np.isfinite(y)
+        avg = np.sum(np.asarray(nis)[ok]) / np.sum(np.asarray(d)[ok]) if ok.any() else np.nan
+        if np.isfinite(avg):
+            _hline(ax, avg, ts, c)
+        ys.append(y)
+        handles.append(Line2D([], [], color=c, lw=1.6, marker="o", ms=2.5,
+                              label=f"{series_name(label)} (time average {avg:.3g})"))
+    allv = np.concatenate([np.ravel(v) for v in ys])
+    allv = allv[np.isfinite(allv) & (allv > 0)]
+    if allv.size and allv.max() / allv.min() > 30:
+        _y_scale(ax, True)
+    else:
+        ax.set_ylim(bottom=0)
+    ax.set_ylabel("NIS / dof")
+    _style(ax, "time [s]")
+    _xlim(ax, [s[0] for s in series.values()])
+    _legend(fig, handles, ncol=2)
+    return fig
+
+
+def truth_error_figure(series: dict, colors: dict, noise_sigma: float | None = None):
+    """Mean over the points of |ŷ − y_true| per step, with ±1 std band, per estimator.
+
+    Parameters
+    ----------
+    series : dict label -> (times (K,), mean (K,) m, var (K,) m^2, overall mean m)
+    noise_sigma : float, optional
+        Per-coordinate measurement noise σ (m): a dotted reference line.
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    fig, (ax,) = _figure()
+    handles = []
+    for i, (label, (t, mean, var, overall)) in enumerate(series.items()):
+        c = colors[label]
+        m, s = np.asarray(mean) * MM, np.sqrt(np.asarray(var)) * MM
+        ax.fill_between(t, np.maximum(m - s, 0), m + s, color=c, alpha=0.15, lw=0)
+        ax.plot(t, m, color=c, lw=1.6, marker="o", ms=2.5, zorder=_z(i))
+        if np.isfinite(overall):
+            _hline(ax, overall * MM, t, c)
+        handles.append(Line2D([], [], color=c, lw=1.6, marker="o", ms=2.5, label=_with_mean(label, overall)))
+    handles.append(Patch(color="0.6", alpha=0.3, label="±1 std over the points"))
+    if noise_sigma is not None and np.isfinite(noise_sigma):
+        ax.axhline(noise_sigma * MM, **_NOISE_STYLE)
+        handles.append(Line2D([], [], **_NOISE_STYLE, label=f"measurement noise σ = {noise_sigma * MM:#.3g} mm"))
+    ax.set_ylabel(r"mean $|\hat{y} - y_{\mathrm{true}}|$ [mm]")
+    ax.set_ylim(bottom=0)
+    _style(ax, "time [s]")
+    _xlim(ax, [s[0] for s in series.values()])
+    _legend(fig, handles, ncol=2)
+    return fig
+
+
+def step_time_figure(series: dict, colors: dict):
+    """Wall time per step per estimator (ms, log axis); median and 95th percentile in the legend.
+
+    Parameters
+    ----------
+    series : dict label -> (times (K,), step_time (K,) s, median s, p95 s)
+    """
+    from matplotlib.lines import Line2D
+
+    fig, (ax,) = _figure()
+    handles = []
+    for i, (label, (t, st, med, p95)) in enumerate(series.items()):
+        c = colors[label]
+        y = np.asarray(st, float) * 1e3
+        y = np.where(y > 0, y, np.nan)
+        ax.plot(t, y, color=c, lw=1.2, marker="o", ms=2.5, zorder=_z(i))
+        if np.isfinite(med):
+            _hline(ax, med * 1e3, t, c)
+        handles.append(Line2D([], [], color=c, lw=1.2, marker="o", ms=2.5,
+                              label=f"{series_name(label)} (median {med * 1e3:.3g} ms, p95 {p95 * 1e3:.3g} ms)"))
+    handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="median (k ≥ 1)"))
+    _y_scale(ax, True)
+    ax.set_ylabel("wall time per step [ms]")
+    _style(ax, "time [s]")
+    _xlim(ax, [s[0] for s in series.values()])
+    _legend(fig, handles, ncol=2)
+    return fig
+
+
+# -- the report's figure set ------------------------------------------------------------------------
+CAPTIONS = {
+    "prediction_error.png": "One-step prediction error |y − ŷ| per frame: mean (top) and variance (bottom) over "
+                            "the points seen, per estimator; dashed: the mean over frames k ≥ 1.",
+    "nis.png": "Normalised innovation squared per degree of freedom with the 95 % χ² band of each frame (light) and "
+               "of the time average (dark); dashed: each estimator's time average.",
+    "truth_error.png": "Error of the one-step predictions against the true point positions: mean over the points "
+                       "(±1 std shaded) per frame; dashed: the mean over frames k ≥ 1.",
+    "step_time.png": "Wall time per step (prediction and update); dashed: the median over steps k ≥ 1.",
+}
+
+
+def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 150,
+                  level: float = 0.95) -> list:
+    """Write the report's PNGs into ``folder``; returns [(file name, caption)] in report order.
+
+    Parameters
+    ----------
+    runs : dict label -> {'path', 'est'}
+        The estimate sets (:class:`tracker.measurements.EstimateSet`), in the order given.
+    per : dict label -> dict
+        :func:`tracker.metrics.estimator_metrics` of each run.
+    truth : dict or None
+        ``{'times', 'theta', 'positions': label -> (K, P, 3)}`` (cli/report.py).
+    noise : float or None
+        Per-coordinate measurement noise σ, m.
+    """
+    import numpy as np
+
+    from tracker.metrics import mean_noise_norm
+    from tracker.params import NAMES, UNITS
+
+    from .plots import COLORS, save_png
+
+    colors, fallback = {}, iter(("#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf", "#ff7f0e") * 10)
+    for label, r in runs.items():
+        c = COLORS.get(r["est"].estimator)
+        colors[label] = c if c and c not in colors.values() else next(fallback)
+    ps = {k: m["per_step"] for k, m in per.items()}
+    out = []
+
+    def save(fig, name, caption):
+        save_png(fig, folder / name, dpi=dpi)
+        out.append((name, caption))
+
+    noise_norm = mean_noise_norm(noise) if noise else None
+    save(prediction_error_figure({k: (p["times"], p["error_mean"], p["error_var"],
+                                         per[k]["prediction_error_mean_m"]) for k, p in ps.items()},
+                                    colors, noise_norm), "prediction_error.png", CAPTIONS["prediction_error.png"]
+         + (" Dotted: the mean norm of the measurement noise, the error of a perfect predictor." if noise else ""))
+    for j in _shown_parameters(runs, ps, truth):
+        name = NAMES[j]
+        tr = (truth["times"], truth["theta"][:, j]) if truth is not None else None
+        fig = parameter_figure(name, UNITS[j], {k: (p["times"], p["theta"][:, j], p["theta_std"][:, j])
+                                                   for k, p in ps.items()}, colors, tr)
+        save(fig, f"parameter_{name}.png", f"{TITLES[name][0].upper()}{TITLES[name][1:]}: posterior mean per "
+             "estimator with its ±2σ band" + (" and the truth (dashed)." if tr else "."))
+    with_nis = {k: (p["times"], p["nis"], p["nis_dof"]) for k, p in ps.items() if np.isfinite(p["nis"]).any()}
+    if with_nis:
+        ref = max(with_nis, key=lambda k: ps[k]["times"].size)
+        band = per[ref]["nis_mean_band"]
+        save(nis_figure(with_nis, colors, (ps[ref]["times"], ps[ref]["nis_lo"], ps[ref]["nis_hi"],
+                                              ps[ref]["nis_dof"]),
+                           (band[0], band[1], per[ref]["nis_mean_dof"]) if band else None, level),
+             "nis.png", CAPTIONS["nis.png"] + (f" Bands of the {series_name(ref)} run." if len(with_nis) > 1
+                                               else ""))
+    if truth is not None and truth["positions"]:
+        save(truth_error_figure({k: (ps[k]["times"], ps[k]["truth_error_mean"], ps[k]["truth_error_var"],
+                                        per[k]["truth_error_mean_m"]) for k in truth["positions"]}, colors, noise),
+             "truth_error.png", CAPTIONS["truth_error.png"]
+             + (" Dotted: the measurement noise σ per coordinate." if noise else ""))
+    save(step_time_figure({k: (p["times"], p["step_time"], per[k]["step_time_median_s"],
+                                  per[k]["step_time_p95_s"]) for k, p in ps.items()}, colors),
+         "step_time.png", CAPTIONS["step_time.png"])
+    return out
+
+
+def _shown_parameters(runs, ps, truth) -> list:
+    """Indices of the parameters worth a figure: estimated by some run, or off the truth / varying in it."""
+    import numpy as np
+
+    from tracker.params import NAMES
+
+    shown = []
+    for j, name in enumerate(NAMES):
+        estimated = any(name in r["est"].meta.get("estimated", []) or (ps[k]["theta_std"][:, j] > 0).any()
+                        for k, r in runs.items())
+        off = False
+        if truth is not None:
+            tv = np.asarray(truth["theta"][:, j], float)
+            scale = max(np.abs(tv).max(), 1e-300)
+            off = np.ptp(tv) > 1e-9 * scale or any(
+                np.nanmax(np.abs(ps[k]["theta"][:, j] - tv[0]), initial=0.0) > 1e-6 * scale for k in ps)
+        if estimated or off:
+            shown.append(j)
+    return shown

@@ -1,0 +1,174 @@
+"""CLI: heartcv report on estimate files made with the existing CLI (model simulate -> track kf/ge): the folder,
+metrics.json against the estimate files, the figures, mixed sequences, partial runs, render truths, bad input."""
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+
+from cli.main import main
+from cli.report import report
+from tests.conftest import SAMPLES
+
+PAPER = str(SAMPLES / "paper_patch.yaml")
+PER_ESTIMATOR = {"prediction_error_mean_m", "prediction_error_std_m", "prediction_error_rms_m", "truth_error_mean_m",
+                 "nis_mean", "nis_mean_dof", "nis_in_band_fraction", "theta_final", "theta_std_final",
+                 "step_time_median_s", "step_time_p95_s", "completed_steps"}
+
+
+def _ok(cmd, args):
+    res = CliRunner().invoke(cmd, [str(a) for a in args])
+    assert res.exit_code == 0, res.output
+    return res
+
+
+def _report(args):
+    # `report` is invoked directly: cli/main.py registers it as `heartcv report`
+    return CliRunner().invoke(report, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("report")
+    _ok(main, ["-q", "model", "simulate", PAPER, "--duration", "1", "--seed", "1", "-o", d / "m.npz",
+               "--truth", d / "t.npz"])
+    for e in ("kf", "ge"):
+        _ok(main, ["-q", "track", d / "m.npz", "--model", PAPER, "--estimator", e, "-o", d / f"{e}.npz"])
+    _ok(main, ["-q", "model", "simulate", PAPER, "--duration", "0.5", "--seed", "1", "-o", d / "short.npz"])
+    _ok(main, ["-q", "track", d / "short.npz", "--model", PAPER, "-o", d / "kf_short.npz"])
+    return d
+
+
+def test_end_to_end(run):
+    out = run / "rep"
+    res = _report([run / "ge.npz", run / "kf.npz", "--truth", run / "t.npz", "--measurements", run / "m.npz",
+                   "-o", out, "--json"])
+    assert res.exit_code == 0, res.output
+    js = json.loads(res.stdout)
+    doc = json.loads((out / "metrics.json").read_text())
+    assert js == dict(doc, output=str(out))
+    assert set(doc["files"]) == {p.name for p in out.iterdir()}
+    assert not [p for p in run.iterdir() if p.name.startswith(".rep.")]  # no temporary folder left
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert set(pngs) == set(doc["figures"]) == {"prediction_error.png", "parameter_E.png", "parameter_nu.png",
+                                                  "nis.png", "truth_error.png", "step_time.png"}
+    html = (out / "index.html").read_text()
+    md = (out / "summary.md").read_text()
+    for name in pngs:
+        assert f'href="{name}"' in html and f"]({name})" in md
+        with Image.open(out / name) as im:
+            assert im.width >= 960 and im.info["dpi"][0] == pytest.approx(150, abs=1)
+    assert html.count("data:image/png;base64,") == len(pngs)
+
+    from tracker.io import read_estimates, read_measurements, read_truth
+
+    truth, _ = read_truth(run / "t.npz")
+    meas = read_measurements(run / "m.npz")
+    assert doc["sequence"] == {"frames": 31, "duration_s": pytest.approx(1.0), "points": 14,
+                               "dt_s": pytest.approx(1 / 30), "mixed": False}
+    assert doc["measurement_noise_m"] == pytest.approx(1e-4, rel=1e-12)  # paper_patch: 0.1 mm per coordinate
+    assert doc["truth"]["kind"] == "simulation" and doc["truth"]["positions"]
+    for name in ("ge", "kf"):
+        e = doc["estimators"][name]
+        est = read_estimates(run / f"{name}.npz")
+        assert PER_ESTIMATOR <= set(e) and e["completed_steps"] == 31 and not e["partial"]
+        # against the estimate files directly
+        assert e["prediction_error_rms_m"] == pytest.approx(est.prediction_rmse(), rel=1e-12)
+        d = np.linalg.norm(est.innovations[1:], axis=-1)
+        assert e["prediction_error_mean_m"] == pytest.approx(d.mean(), rel=1e-12)
+        t = np.linalg.norm(est.predictions[1:] - truth["positions"][1:], axis=-1)
+        assert e["truth_error_mean_m"] == pytest.approx(t.mean(), rel=1e-12)
+        assert e["nis_mean"] == pytest.approx(np.mean(est.nis), rel=1e-12) and e["nis_mean_dof"] == 42
+        assert e["theta_final"]["E"] == pytest.approx(est.theta[-1, 3], rel=1e-12)
+        assert e["step_time_median_s"] == pytest.approx(np.median(est.step_time[1:]), rel=1e-12)
+        assert e["step_time_p95_s"] >= e["step_time_median_s"] > 0
+        # plausible: the measurement noise (0.1 mm) dominates the prediction error, the truth error lies below
+        # it, and the paper's model is consistent (both estimators run with the true parameters)
+        assert 1e-4 < e["prediction_error_mean_m"] < 3e-4
+        assert e["truth_error_mean_m"] < e["prediction_error_mean_m"]
+        assert e["truth_error_mean_m"] < doc["measurement_noise_m"]
+        assert 0.7 < e["nis_mean"] / e["nis_mean_dof"] < 1.3
+    assert doc["estimators"]["ge"]["estimated"] == ["E", "nu"]
+    assert doc["estimators"]["ge"]["theta_std_final"]["E"] > 0 == doc["estimators"]["kf"]["theta_std_final"]["E"]
+    assert doc["ratio_ge_to_kf_prediction_error"] == pytest.approx(
+        doc["estimators"]["ge"]["prediction_error_mean_m"] / doc["estimators"]["kf"]["prediction_error_mean_m"])
+    assert doc["inputs_hash"]["measurements"] == read_estimates(run / "kf.npz").meta["inputs_hash"]["measurements"]
+    assert meas.n_frames == 31
+
+    # a second report replaces the folder as a whole
+    (out / "stale.txt").write_text("x")
+    res = _report([run / "kf.npz", "-o", out])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "metrics.json").read_text())
+    assert not (out / "stale.txt").exists() and not (out / "truth_error.png").exists()
+    assert doc["measurement_noise_m"] is None and doc["estimators"]["kf"]["truth_error_mean_m"] is None
+    assert doc["ratio_ge_to_kf_prediction_error"] is None and "parameter_E.png" not in doc["figures"]
+
+
+def test_mixed_sequences_refused(run):
+    out = run / "mixed"
+    res = _report([run / "kf.npz", run / "kf_short.npz", "-o", out])
+    assert res.exit_code == 2
+    assert "different sequences" in res.output and "kf_short.npz" in res.output and "kf.npz" in res.output
+    assert not out.exists()
+    res = _report([run / "kf_short.npz", "--truth", run / "t.npz", "-o", out])
+    assert res.exit_code == 2 and "frame times" in res.output and not out.exists()
+    res = _report([run / "kf.npz", "--measurements", run / "short.npz", "-o", out])
+    assert res.exit_code == 2 and "short.npz" in res.output and not out.exists()
+    res = _report([run / "kf.npz", run / "kf_short.npz", "-o", out, "--allow-mixed", "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert doc["sequence"]["mixed"] and set(doc["estimators"]) == {"kf:kf", "kf:kf_short"}
+    assert doc["estimators"]["kf:kf_short"]["completed_steps"] == 16
+
+
+def test_partial_run_and_render_truth(run, caplog):
+    from dataclasses import replace
+
+    from tracker.io import read_estimates, read_truth, write_estimates
+
+    ge = read_estimates(run / "ge.npz")
+    nan_rows = lambda a: np.concatenate([a[:20], np.full_like(a[20:], np.nan)])  # noqa: E731
+    part = replace(ge, completed_steps=20, theta=nan_rows(ge.theta), theta_std=nan_rows(ge.theta_std),
+                   predictions=nan_rows(ge.predictions), innovations=nan_rows(ge.innovations), nis=nan_rows(ge.nis),
+                   nis_dof=np.where(np.arange(31) < 20, ge.nis_dof, 0),
+                   step_time=np.where(np.arange(31) < 20, ge.step_time, 0.0))
+    write_estimates(run / "ge.partial.npz", part, {"partial": True})
+    truth, _ = read_truth(run / "t.npz")
+    meta = json.dumps({"format": "heartcv.render_truth", "format_version": 1, "kind": "sequence"}).encode()
+    np.savez(run / "render_truth.npz", times=truth["times"], theta=truth["theta"],
+             point_positions=truth["positions"], meta_json=np.frombuffer(meta, np.uint8))
+    with caplog.at_level(logging.WARNING, logger="cli.report"):
+        res = _report([run / "ge.partial.npz", run / "kf.npz", "--truth", run / "render_truth.npz", "-o",
+                       run / "rep_part", "--json"])
+    assert res.exit_code == 0, res.output
+    assert "partial run (20 of 31 steps completed)" in caplog.text
+    doc = json.loads(res.stdout)
+    g = doc["estimators"]["ge"]
+    assert g["partial"] and g["completed_steps"] == 20 and g["steps"] == 31
+    assert g["prediction_error_rms_m"] == pytest.approx(part.prediction_rmse(), rel=1e-12)
+    assert g["theta_final"]["E"] == pytest.approx(ge.theta[19, 3], rel=1e-12)
+    assert doc["truth"]["kind"] == "render" and not doc["truth"]["positions"]
+    assert g["truth_error_mean_m"] is None and "patch_from_rig" in doc["truth"]["notes"][0]
+    assert "truth_error.png" not in doc["figures"] and "parameter_E.png" in doc["figures"]
+
+
+def test_bad_input(run):
+    res = _report([run / "missing.npz", "-o", run / "bad"])
+    assert res.exit_code == 2 and "missing.npz" in res.output
+    res = _report([run / "kf.npz", "--truth", run / "m.npz", "-o", run / "bad"])
+    assert res.exit_code == 2 and "truth file" in res.output
+    res = _report([run / "m.npz", "-o", run / "bad"])
+    assert res.exit_code == 2 and "heartcv.estimates" in res.output
+    other = run / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    res = _report([run / "kf.npz", "-o", other])
+    assert res.exit_code == 2 and "not a report" in res.output and (other / "keep.txt").read_text() == "mine"
+    res = _report([run / "kf.npz", "-o", run / "m.npz"])
+    assert res.exit_code == 2 and "not a folder" in res.output
+    assert not (run / "bad").exists()

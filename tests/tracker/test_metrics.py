@@ -1,0 +1,171 @@
+"""tracker.metrics: exact values on tiny hand-made estimate sets, chi-square bands against scipy.stats, truth
+errors, partial runs and the sequence comparison."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from tracker import metrics as tm
+from tracker.measurements import EstimateSet
+from tracker.params import NAMES
+
+NAN = np.nan
+
+
+def _est(innovations, *, predictions=None, nis=None, dof=None, step_time=None, theta=None, theta_std=None,
+         completed=None, times=None, point_ids=None, meta=None, estimator="kf"):
+    e = np.asarray(innovations, float)
+    K, P = e.shape[:2]
+    return EstimateSet(
+        estimator, np.arange(K) * 0.1 if times is None else times, np.arange(P) if point_ids is None else point_ids,
+        np.zeros((K, 2)), np.zeros((K, 2)),
+        np.tile([1050.0, 2.39, 0.003, 1.5e5, 0.45], (K, 1)) if theta is None else theta,
+        np.zeros((K, 5)) if theta_std is None else theta_std,
+        np.zeros((K, P, 3)) if predictions is None else predictions, e,
+        np.full(K, 42.0) if nis is None else np.asarray(nis, float),
+        np.full(K, 42) if dof is None else np.asarray(dof), np.zeros(K, np.int64),
+        np.full(K, 1e-3) if step_time is None else np.asarray(step_time, float),
+        K if completed is None else completed, meta or {})
+
+
+# three steps, two points; norms 5/NaN, 3/4 (hand: 3-4-0 and 0-0-3, 0-4-0 ...), 1/1
+E1 = np.array([
+    [[3.0, 4.0, 0.0], [NAN, NAN, NAN]],   # k = 0: norms 5, unseen
+    [[0.0, 0.0, 3.0], [0.0, 4.0, 0.0]],   # k = 1: norms 3, 4
+    [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]],  # k = 2: norms 1, 1
+]) * 1e-4
+
+
+def test_error_norms_and_per_step_stats_exact():
+    n = tm.error_norms(E1)
+    np.testing.assert_allclose(n, np.array([[5, NAN], [3, 4], [1, 1]]) * 1e-4, rtol=1e-15)
+    mean, var, count = tm.per_step_stats(n)
+    np.testing.assert_allclose(mean, np.array([5, 3.5, 1]) * 1e-4, rtol=1e-15)
+    np.testing.assert_allclose(var, np.array([0, 0.25, 0]) * 1e-8, rtol=1e-12, atol=1e-24)
+    np.testing.assert_array_equal(count, [1, 2, 2])
+    mean, var, count = tm.per_step_stats(np.full((2, 3), NAN))
+    assert np.isnan(mean).all() and np.isnan(var).all() and (count == 0).all()
+    with pytest.raises(ValueError, match=r"\(K, P\)"):
+        tm.per_step_stats(np.zeros(3))
+
+
+def test_estimator_metrics_prediction_error_exact():
+    est = _est(E1)
+    m = tm.estimator_metrics(est)
+    # steps k >= 1: norms 3, 4, 1, 1 (x 1e-4 m)
+    assert m["prediction_error_mean_m"] == pytest.approx(2.25e-4, rel=1e-14)
+    assert m["prediction_error_std_m"] == pytest.approx(np.sqrt((0.75**2 + 1.75**2 + 2 * 1.25**2) / 4) * 1e-4,
+                                                        rel=1e-14)
+    assert m["prediction_error_rms_m"] == pytest.approx(np.sqrt(27 / 4) * 1e-4, rel=1e-14)
+    assert m["prediction_error_rms_m"] == pytest.approx(est.prediction_rmse(), rel=1e-14)
+    assert m["prediction_error_count"] == 4 and m["completed_steps"] == 3
+    assert np.isnan(m["truth_error_mean_m"]) and np.isnan(m["per_step"]["truth_error_mean"]).all()
+    np.testing.assert_allclose(m["per_step"]["error_mean"], np.array([5, 3.5, 1]) * 1e-4, rtol=1e-15)
+    assert m["theta_final"] == dict(zip(NAMES, [1050.0, 2.39, 0.003, 1.5e5, 0.45]))
+    assert m["theta_std_final"] == dict.fromkeys(NAMES, 0.0)
+
+
+def test_truth_errors_exact():
+    truth = np.zeros((3, 2, 3))
+    pred = np.zeros((3, 2, 3))
+    pred[0] = [[9.0, 0, 0], [0, 0, 0]]          # step 0 is left out of the overall numbers
+    pred[1] = [[0, 3.0, 4.0], [0, 0, 2.0]]      # norms 5, 2
+    pred[2] = [[0, 0, 0], [6.0, 8.0, 0]]        # norms 0, 10
+    truth[:] = [1.0, 2.0, 3.0]                  # a common offset: errors are differences
+    pred = (pred + truth) * 1e-3
+    truth = truth * 1e-3
+    np.testing.assert_allclose(tm.truth_error_norms(pred, truth), np.array([[9, 0], [5, 2], [0, 10]]) * 1e-3,
+                               rtol=1e-12, atol=1e-18)
+    m = tm.estimator_metrics(_est(E1, predictions=pred), truth)
+    assert m["truth_error_mean_m"] == pytest.approx(17 / 4 * 1e-3, rel=1e-12)
+    assert m["truth_error_rms_m"] == pytest.approx(np.sqrt(129 / 4) * 1e-3, rel=1e-12)
+    np.testing.assert_allclose(m["per_step"]["truth_error_mean"], np.array([4.5, 3.5, 5]) * 1e-3, rtol=1e-12)
+    np.testing.assert_allclose(m["per_step"]["truth_error_var"], np.array([20.25, 2.25, 25]) * 1e-6, rtol=1e-10)
+    pred[1, 1] = NAN  # a dropped point has no prediction: left out
+    m = tm.estimator_metrics(_est(E1, predictions=pred), truth)
+    assert m["truth_error_mean_m"] == pytest.approx(15 / 3 * 1e-3, rel=1e-12)
+    with pytest.raises(ValueError, match="one shape"):
+        tm.truth_error_norms(pred[:2], truth)
+
+
+def test_nis_bands_against_scipy():
+    lo, hi = tm.nis_step_band([42, 3, 0, 1], 0.95)
+    assert lo[0] == pytest.approx(stats.chi2.ppf(0.025, 42), rel=1e-12)
+    assert hi[1] == pytest.approx(stats.chi2.ppf(0.975, 3), rel=1e-12)
+    assert np.isnan(lo[2]) and np.isnan(hi[2])
+    assert hi[3] == pytest.approx(stats.chi2.ppf(0.975, 1), rel=1e-12)
+    lo, hi = tm.nis_step_band([10], 0.9)
+    assert (lo[0], hi[0]) == pytest.approx((stats.chi2.ppf(0.05, 10), stats.chi2.ppf(0.95, 10)), rel=1e-12)
+    # the time average of n chi2(d_k): chi2(sum d) / n
+    band = tm.nis_mean_band([42, 39, 42])
+    assert band == pytest.approx((stats.chi2.ppf(0.025, 123) / 3, stats.chi2.ppf(0.975, 123) / 3), rel=1e-12)
+    # equals the study's chi2_band for a constant dof
+    from tracker.study import chi2_band
+
+    assert tm.nis_mean_band([6] * 5) == pytest.approx(chi2_band(5, 6), rel=1e-12)
+    with pytest.raises(ValueError, match="dof >= 1"):
+        tm.nis_mean_band([3, 0])
+    with pytest.raises(ValueError, match="level"):
+        tm.nis_step_band([3], 1.0)
+
+
+def test_nis_statistics_exact():
+    lo, hi = stats.chi2.ppf(0.025, 6), stats.chi2.ppf(0.975, 6)
+    nis = [NAN, lo - 0.01, hi, 3.0, 50.0]   # step 0 nothing seen; bounds count as inside
+    dof = [0, 6, 6, 6, 6]
+    s = tm.nis_statistics(nis, dof)
+    assert s["steps"] == 4
+    assert s["mean"] == pytest.approx((lo - 0.01 + hi + 3 + 50) / 4, rel=1e-14)
+    assert s["mean_dof"] == 6.0
+    assert s["in_band_fraction"] == pytest.approx(0.5)
+    assert s["mean_band"] == pytest.approx((stats.chi2.ppf(0.025, 24) / 4, stats.chi2.ppf(0.975, 24) / 4))
+    none = tm.nis_statistics([NAN, NAN], [0, 0])
+    assert none["steps"] == 0 and none["mean_band"] is None and np.isnan(none["mean"])
+
+
+def test_step_time_statistics_exact():
+    st = [0.5, 1.0, 2.0, 3.0, 4.0, 100.0]  # step 0 excluded
+    s = tm.step_time_statistics(st)
+    assert s["median"] == 3.0 and s["steps"] == 5
+    # numpy's linear interpolation: position 0.95 * 4 = 3.8 between 4 and 100
+    assert s["p95"] == pytest.approx(4.0 + 0.8 * 96.0, rel=1e-14)
+    assert tm.step_time_statistics([0.25]) == {"median": 0.25, "p95": 0.25, "steps": 1}
+
+
+def test_partial_run_uses_completed_steps_only():
+    e = np.concatenate([E1, np.full((2, 2, 3), NAN)])
+    nis = [40.0, 44.0, 42.0, NAN, NAN]
+    theta = np.tile([1050.0, 2.39, 0.003, 1.5e5, 0.45], (5, 1))
+    theta[2, 3] = 1.6e5
+    theta[3:] = NAN
+    st = [0.1, 0.2, 0.4, 0.0, 0.0]
+    est = _est(e, nis=nis, dof=[42, 42, 42, 0, 0], step_time=st, theta=theta, completed=3)
+    m = tm.estimator_metrics(est)
+    assert m["completed_steps"] == 3 and m["prediction_error_mean_m"] == pytest.approx(2.25e-4, rel=1e-14)
+    assert m["theta_final"]["E"] == 1.6e5
+    assert m["nis_mean"] == pytest.approx(42.0) and m["nis_steps"] == 3
+    assert m["step_time_median_s"] == pytest.approx(0.3) and len(m["per_step"]["times"]) == 3
+
+
+def test_measurement_noise_level_exact():
+    cov = np.full((2, 2, 3, 3), NAN)
+    cov[0, 0] = np.diag([1.0, 2.0, 3.0]) * 1e-8     # trace/3 = 2e-8
+    cov[1, 0] = np.eye(3) * 1e-8                    # 1e-8
+    cov[1, 1] = np.diag([3.0, 6.0, 3.0]) * 1e-8     # 4e-8
+    assert tm.measurement_noise_level(cov) == pytest.approx(np.sqrt(7e-8 / 3), rel=1e-14)
+    seen = np.array([[True, False], [False, True]])
+    assert tm.measurement_noise_level(cov, seen) == pytest.approx(np.sqrt(3e-8), rel=1e-14)
+    assert np.isnan(tm.measurement_noise_level(np.full((1, 1, 3, 3), NAN)))
+    # mean norm of N(0, s^2 I3): the chi(3) distribution's mean times s
+    assert tm.mean_noise_norm(1e-4) == pytest.approx(stats.chi(3).mean() * 1e-4, rel=1e-12)
+
+
+def test_sequence_mismatch():
+    a = _est(E1, meta={"inputs_hash": {"measurements": "sha256:aa"}})
+    assert tm.sequence_mismatch(a, _est(E1)) is None
+    assert tm.sequence_mismatch(a, _est(E1, meta={"inputs_hash": {"measurements": "sha256:aa"}})) is None
+    assert "frames" in tm.sequence_mismatch(a, _est(E1[:2]))
+    assert "times" in tm.sequence_mismatch(a, _est(E1, times=np.arange(3) * 0.2))
+    assert "point ids" in tm.sequence_mismatch(a, _est(E1, point_ids=[5, 6]))
+    assert "point ids" in tm.sequence_mismatch(a, _est(E1[:, :1]))
+    assert "inputs_hash" in tm.sequence_mismatch(a, _est(E1, meta={"inputs_hash": {"measurements": "sha256:bb"}}))

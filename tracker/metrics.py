@@ -1,0 +1,285 @@
+"""Metrics of estimator runs over one sequence: one-step prediction error, NIS consistency, parameter
+trajectories, error against ground truth and step timing (the numbers behind ``heartcv report``).
+
+Pure functions on :class:`~tracker.measurements.EstimateSet` objects and arrays; no I/O. Conventions, chosen
+to agree with the summary of ``heartcv track --json``:
+
+- only the completed steps ``0 … completed_steps − 1`` of a (partial) run are used;
+- overall prediction and truth errors use the steps k ≥ 1 (step 0 is the prediction from the prior, which
+  says more about the prior than about the tracker); the per-step curves cover every completed step;
+- the prediction error of point p at step k is the Euclidean norm ``|y_kp − ŷ_kp|`` of the innovation
+  (m), over the points seen at that step (the paper's Fig. 4 uses the same deviation per coordinate);
+- NIS statistics use every completed step with at least one point seen (step 0 included);
+- step times use the steps k ≥ 1 (step 0 only updates the prior), or step 0 alone when there is one step.
+
+The chi-square bands: a consistent filter's NIS at step k is χ²(d_k) with d_k = ``nis_dof[k]``; its per-step
+two-sided ``level`` band is ``[χ²_ppf(a/2, d_k), χ²_ppf(1 − a/2, d_k)]`` (a = 1 − level). The innovations of
+a consistent filter are white, so the sum of n NIS values is χ²(Σ d_k) and the time average lies in
+``[χ²_ppf(a/2, Σ d_k) / n, χ²_ppf(1 − a/2, Σ d_k) / n]`` (Bar-Shalom, Li & Kirubarajan, *Estimation with
+Applications to Tracking and Navigation*, 2001, §5.4).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .measurements import EstimateSet
+from .params import NAMES
+
+__all__ = [
+    "completed",
+    "error_norms",
+    "per_step_stats",
+    "pooled_stats",
+    "nis_step_band",
+    "nis_mean_band",
+    "nis_statistics",
+    "step_time_statistics",
+    "measurement_noise_level",
+    "mean_noise_norm",
+    "truth_error_norms",
+    "sequence_mismatch",
+    "estimator_metrics",
+]
+
+
+def completed(est: EstimateSet) -> int:
+    """Number of usable steps of ``est`` (``completed_steps``)."""
+    return int(est.completed_steps)
+
+
+def error_norms(vectors) -> np.ndarray:
+    """Euclidean norms over the last axis: (K, P, 3) -> (K, P) (NaN where a vector has a NaN)."""
+    v = np.asarray(vectors, float)
+    if v.ndim < 1 or v.shape[-1] != 3:
+        raise ValueError(f"error_norms: array of shape (..., 3) expected, got {v.shape}")
+    return np.sqrt(np.sum(v**2, axis=-1))
+
+
+def per_step_stats(norms) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean, variance (ddof 0) and count of the finite entries of each row.
+
+    Parameters
+    ----------
+    norms : ndarray of shape (K, P)
+        Error norms, NaN where undefined (point not seen).
+
+    Returns
+    -------
+    mean, var : ndarray of shape (K,)
+        NaN for a row without finite entries.
+    count : ndarray of shape (K,) int
+    """
+    x = np.asarray(norms, float)
+    if x.ndim != 2:
+        raise ValueError(f"per_step_stats: array of shape (K, P) expected, got {x.shape}")
+    ok = np.isfinite(x)
+    n = ok.sum(axis=1)
+    z = np.where(ok, x, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, z.sum(axis=1) / np.maximum(n, 1), np.nan)
+        var = np.where(n > 0, np.where(ok, (x - mean[:, None]) ** 2, 0.0).sum(axis=1) / np.maximum(n, 1), np.nan)
+    return mean, var, n
+
+
+def pooled_stats(norms) -> dict:
+    """Mean, standard deviation (ddof 0), RMS and count over all finite entries of ``norms``.
+
+    Returns ``{'mean', 'std', 'rms', 'count'}``; NaN statistics when nothing is finite.
+    """
+    x = np.asarray(norms, float).ravel()
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return {"mean": np.nan, "std": np.nan, "rms": np.nan, "count": 0}
+    return {"mean": float(x.mean()), "std": float(x.std()), "rms": float(np.sqrt(np.mean(x**2))),
+            "count": int(x.size)}
+
+
+def nis_step_band(dof, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """Per-step two-sided ``level`` band of a χ²(``dof``) statistic (NaN where ``dof`` < 1).
+
+    Parameters
+    ----------
+    dof : array_like of int, shape (K,)
+    level : float in (0, 1)
+    """
+    from scipy import stats
+
+    _check_level(level)
+    d = np.asarray(dof, float)
+    a = 1.0 - level
+    good = d >= 1
+    lo = np.full(d.shape, np.nan)
+    hi = np.full(d.shape, np.nan)
+    lo[good] = stats.chi2.ppf(a / 2, d[good])
+    hi[good] = stats.chi2.ppf(1 - a / 2, d[good])
+    return lo, hi
+
+
+def nis_mean_band(dof, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``level`` band of the time average of n independent χ²(d_k) statistics, d = ``dof`` (n,):
+    ``[χ²_ppf(a/2, Σ d) / n, χ²_ppf(1 − a/2, Σ d) / n]``."""
+    from scipy import stats
+
+    _check_level(level)
+    d = np.asarray(dof, float).ravel()
+    if not d.size or (d < 1).any():
+        raise ValueError(f"nis_mean_band: at least one step and dof >= 1 expected, got {d.tolist()}")
+    a = 1.0 - level
+    n, total = d.size, d.sum()
+    return float(stats.chi2.ppf(a / 2, total) / n), float(stats.chi2.ppf(1 - a / 2, total) / n)
+
+
+def _check_level(level):
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level: a probability in (0, 1) expected, got {level}")
+
+
+def nis_statistics(nis, dof, level: float = 0.95) -> dict:
+    """NIS summary over the steps with a finite NIS and dof ≥ 1.
+
+    Returns ``{'mean', 'mean_dof', 'mean_band': (lo, hi), 'in_band_fraction', 'steps'}``: the mean NIS,
+    the mean dof, the band of the mean (:func:`nis_mean_band`), the fraction of those steps whose NIS lies
+    inside its per-step band (:func:`nis_step_band`, bounds included) and their count. NaN / None when no
+    step qualifies.
+    """
+    nis = np.asarray(nis, float).ravel()
+    dof = np.asarray(dof).ravel()
+    if nis.shape != dof.shape:
+        raise ValueError(f"nis_statistics: nis and dof of the same shape expected, got {nis.shape}, {dof.shape}")
+    ok = np.isfinite(nis) & (dof >= 1)
+    if not ok.any():
+        return {"mean": np.nan, "mean_dof": np.nan, "mean_band": None, "in_band_fraction": np.nan, "steps": 0}
+    lo, hi = nis_step_band(dof[ok], level)
+    inside = (nis[ok] >= lo) & (nis[ok] <= hi)
+    return {"mean": float(nis[ok].mean()), "mean_dof": float(dof[ok].mean()),
+            "mean_band": nis_mean_band(dof[ok], level), "in_band_fraction": float(inside.mean()),
+            "steps": int(ok.sum())}
+
+
+def step_time_statistics(step_time) -> dict:
+    """Median and 95th percentile (numpy's linear interpolation) of the step wall times (s) of steps k ≥ 1,
+    or of step 0 alone for a single step. ``{'median', 'p95', 'steps'}``."""
+    t = np.asarray(step_time, float).ravel()
+    t = t[1:] if t.size > 1 else t
+    t = t[np.isfinite(t)]
+    if not t.size:
+        return {"median": np.nan, "p95": np.nan, "steps": 0}
+    return {"median": float(np.median(t)), "p95": float(np.percentile(t, 95)), "steps": int(t.size)}
+
+
+def measurement_noise_level(covariances, seen=None) -> float:
+    """Per-coordinate measurement noise level σ (m): the RMS over the observations of sqrt(trace(C)/3),
+    i.e. ``sqrt(mean(trace(C_kp) / 3))`` over the seen (k, p).
+
+    Parameters
+    ----------
+    covariances : ndarray of shape (K, P, 3, 3)
+        m^2, NaN where not seen.
+    seen : ndarray of shape (K, P) bool, optional
+        Defaults to the finite covariances.
+    """
+    c = np.asarray(covariances, float)
+    if c.ndim != 4 or c.shape[-2:] != (3, 3):
+        raise ValueError(f"measurement_noise_level: covariances of shape (K, P, 3, 3) expected, got {c.shape}")
+    tr = np.trace(c, axis1=-2, axis2=-1)
+    ok = np.isfinite(tr) if seen is None else np.asarray(seen, bool) & np.isfinite(tr)
+    if not ok.any():
+        return float("nan")
+    return float(np.sqrt(np.mean(tr[ok] / 3.0)))
+
+
+def mean_noise_norm(sigma: float) -> float:
+    """Mean Euclidean norm E|v| of v ~ N(0, σ² I₃): σ·sqrt(8/π) (chi distribution with 3 dof)."""
+    return float(sigma * np.sqrt(8.0 / np.pi))
+
+
+def truth_error_norms(predictions, truth_positions) -> np.ndarray:
+    """|ŷ_kp − y_kp^true| (K, P) of predictions (K, P, 3) against true positions (K, P, 3), same frame (m)."""
+    p = np.asarray(predictions, float)
+    t = np.asarray(truth_positions, float)
+    if p.shape != t.shape or p.ndim != 3 or p.shape[-1] != 3:
+        raise ValueError(f"truth_error_norms: predictions and truth of one shape (K, P, 3) expected, got "
+                         f"{p.shape} and {t.shape}")
+    return error_norms(p - t)
+
+
+def sequence_mismatch(a: EstimateSet, b: EstimateSet, rtol: float = 1e-9) -> str | None:
+    """Why two estimate sets are not of the same sequence, or None if they are: different frame times
+    (count or values, to ``rtol`` of the duration), different point ids, or different
+    ``meta['inputs_hash']['measurements']`` where both record one."""
+    ta, tb = np.asarray(a.times, float), np.asarray(b.times, float)
+    if ta.shape != tb.shape:
+        return f"{ta.size} vs {tb.size} frames"
+    scale = max(abs(ta[-1] - ta[0]), abs(ta[-1]), 1.0)
+    if not np.allclose(ta, tb, rtol=0.0, atol=rtol * scale):
+        return "different frame times"
+    ia, ib = np.asarray(a.point_ids), np.asarray(b.point_ids)
+    if ia.shape != ib.shape or not np.array_equal(ia, ib):
+        return f"different point ids ({ia.size} vs {ib.size} points)" if ia.shape != ib.shape else \
+            "different point ids"
+    ha = (a.meta.get("inputs_hash") or {}).get("measurements")
+    hb = (b.meta.get("inputs_hash") or {}).get("measurements")
+    if ha and hb and ha != hb:
+        return "different measurement files (meta inputs_hash.measurements)"
+    return None
+
+
+def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.95) -> dict:
+    """All per-run metrics of one estimate set (only its completed steps).
+
+    Parameters
+    ----------
+    est : EstimateSet
+    truth_positions : ndarray of shape (K, P, 3), optional
+        True positions of the same points at the same times, in the frame of the predictions (m).
+    level : float
+        Level of the NIS bands.
+
+    Returns
+    -------
+    dict with, in SI units: ``completed_steps``, ``prediction_error_mean_m`` / ``_std_m`` / ``_rms_m`` /
+    ``_count`` (steps k ≥ 1, seen points), ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (steps k ≥ 1,
+    points with a finite prediction; NaN without truth), ``nis_mean``, ``nis_mean_dof``, ``nis_mean_band``,
+    ``nis_in_band_fraction``, ``theta_final``, ``theta_std_final`` (dicts by parameter name, last completed
+    step; NaN if none), ``step_time_median_s``, ``step_time_p95_s``, ``truncation_events``, and the per-step
+    arrays under ``'per_step'``: ``times``, ``error_mean``, ``error_var``, ``error_count``, ``truth_error_mean``,
+    ``truth_error_var``, ``nis``, ``nis_dof``, ``nis_lo``, ``nis_hi``, ``theta``, ``theta_std``, ``step_time``.
+    """
+    c = completed(est)
+    norms = error_norms(np.asarray(est.innovations)[:c])
+    mean, var, count = per_step_stats(norms)
+    pooled = pooled_stats(norms[1:])
+    out = {
+        "completed_steps": c,
+        "prediction_error_mean_m": pooled["mean"],
+        "prediction_error_std_m": pooled["std"],
+        "prediction_error_rms_m": pooled["rms"],
+        "prediction_error_count": pooled["count"],
+    }
+    t_mean = t_var = np.full(c, np.nan)
+    t_pool = {"mean": np.nan, "std": np.nan, "rms": np.nan}
+    if truth_positions is not None:
+        tn = truth_error_norms(np.asarray(est.predictions)[:c], np.asarray(truth_positions, float)[:c])
+        t_mean, t_var, _ = per_step_stats(tn)
+        t_pool = pooled_stats(tn[1:])
+    out.update(truth_error_mean_m=t_pool["mean"], truth_error_std_m=t_pool["std"], truth_error_rms_m=t_pool["rms"])
+    nis = np.asarray(est.nis, float)[:c]
+    dof = np.asarray(est.nis_dof)[:c]
+    ns = nis_statistics(nis, dof, level)
+    out.update(nis_mean=ns["mean"], nis_mean_dof=ns["mean_dof"], nis_mean_band=ns["mean_band"],
+               nis_in_band_fraction=ns["in_band_fraction"], nis_steps=ns["steps"])
+    theta = np.asarray(est.theta, float)[:c]
+    theta_std = np.asarray(est.theta_std, float)[:c]
+    last = (lambda a: dict(zip(NAMES, map(float, a[-1])))) if c else (lambda a: dict.fromkeys(NAMES, np.nan))
+    out.update(theta_final=last(theta), theta_std_final=last(theta_std))
+    st = step_time_statistics(np.asarray(est.step_time, float)[:c])
+    out.update(step_time_median_s=st["median"], step_time_p95_s=st["p95"],
+               truncation_events=int(np.asarray(est.truncation_events)[:c].sum()))
+    lo, hi = nis_step_band(dof, level)
+    out["per_step"] = {
+        "times": np.asarray(est.times, float)[:c], "error_mean": mean, "error_var": var, "error_count": count,
+        "truth_error_mean": t_mean, "truth_error_var": t_var, "nis": nis, "nis_dof": dof, "nis_lo": lo,
+        "nis_hi": hi, "theta": theta, "theta_std": theta_std, "step_time": np.asarray(est.step_time, float)[:c],
+    }
+    return out
