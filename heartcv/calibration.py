@@ -25,7 +25,7 @@ import numpy as np
 from .detect import Detection
 
 __all__ = ["CalibrationError", "IntrinsicsResult", "calibrate_intrinsics", "outlier_views", "usable_view",
-           "DIST_MODELS", "MIN_VIEWS", "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
+           "describe_target", "target_mismatch", "DIST_MODELS", "MIN_VIEWS", "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
 
 DIST_MODELS = (4, 5, 8)  # (k1, k2, p1, p2) [COLMAP OPENCV, Kalibr radtan], + k3, + rational k4..k6
 MIN_VIEWS = 4            # usable views needed per camera
@@ -92,6 +92,64 @@ def usable_view(det: Detection | None, spec) -> bool:
     xy = spec.object_points()[det.ids, :2]
     s = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
     return bool(s[1] > 0.5 * spec.square_m)
+
+
+def describe_target(spec) -> str:
+    """``'charuco with squares 11x8, DICT_5X5_250'`` or ``'chessboard with inner corners 9x6'``."""
+    if spec.type == "chessboard":
+        return f"chessboard with inner corners {spec.squares[0]}x{spec.squares[1]}"
+    return (f"charuco with squares {spec.squares[0]}x{spec.squares[1]}, {spec.dictionary}"
+            + (", legacy pattern" if spec.legacy else ""))
+
+
+def target_mismatch(detections, spec) -> str | None:
+    """Why the ChArUco board in the images is not the target ``spec``, or None (chessboards: None).
+
+    A ChArUco board whose layout differs from the target's is often still detected, in part, with corners that
+    fit it (a board with more or fewer rows than the target shares its first rows). Three signs give it away
+    over the images where at least 4 of the target's markers were found:
+
+    * in at least half of them, markers of the dictionary that the target does not have (the board in the
+      images is larger, or another board is in view);
+    * fewer than half of the corners that the markers found promise (``Detection.corners_expected``) were
+      found (the layout differs: number of squares, legacy pattern);
+    * over all images, no corner of the target's first or last row or column (the board is smaller).
+
+    Parameters
+    ----------
+    detections : iterable of Detection or None (any nesting of lists)
+    spec : heartcv.targets.TargetSpec
+    """
+    if spec.type != "charuco":
+        return None
+    dets = [d for d in _flatten(detections) if d is not None]
+    seen = [d for d in dets if d.markers >= 4]
+    foreign = sum(d.foreign_markers > 0 for d in seen)
+    if foreign and 2 * foreign >= len(seen):
+        return (f"markers that the target does not have were found in {foreign} of the {len(seen)} images that "
+                f"show the target: the board in the images is larger than the target, or another board is in view")
+    found, expected = sum(len(d) for d in seen), sum(d.corners_expected for d in seen)
+    if expected and 2 * found < expected:
+        return (f"the markers found promise {expected} corners but {found} were found: the board's layout is not "
+                f"the target's (number of squares, legacy pattern)")
+    ids = np.unique(np.concatenate([d.ids for d in dets] + [np.zeros(0, np.int64)]))
+    if ids.size:
+        nx, ny = spec.inner_size
+        rows, cols = set((ids // nx).tolist()), set((ids % nx).tolist())
+        missing = [name for name, ok in (("first row", 0 in rows), ("last row", ny - 1 in rows),
+                                         ("first column", 0 in cols), ("last column", nx - 1 in cols)) if not ok]
+        if missing:
+            return (f"no image shows a corner of the target's {' or '.join(missing)} of corners: the board in the "
+                    f"images is smaller than the target")
+    return None
+
+
+def _flatten(x):
+    for item in x:
+        if item is None or isinstance(item, Detection):
+            yield item
+        else:
+            yield from _flatten(item)
 
 
 def outlier_views(rms, *, factor=OUTLIER_FACTOR, floor_px=OUTLIER_FLOOR_PX, max_view_rms=None) -> np.ndarray:

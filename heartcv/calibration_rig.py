@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import (MIN_VIEWS, OUTLIER_FACTOR, CalibrationError, calibrate_intrinsics, outlier_views,
-                          usable_view)
+from .calibration import (MIN_VIEWS, OUTLIER_FACTOR, CalibrationError, calibrate_intrinsics, describe_target,
+                          outlier_views, target_mismatch, usable_view)
 from .calibration_ba import RigProblem, bundle_adjust
 from .camera import Camera, Rig, invert_pose
 
@@ -173,8 +173,9 @@ def calibrate_rig_detailed(detections, spec, image_sizes, *, names=None, view_na
     Raises
     ------
     CalibrationError
-        The target is found in no image; a camera has fewer than ``min_views`` usable views (the message and
-        ``views_per_camera`` give the count of every camera); cameras cannot be linked to camera 0.
+        The target is found in no image, or the ChArUco board in the images is not the target
+        (:func:`heartcv.calibration.target_mismatch`); a camera has fewer than ``min_views`` usable views (the
+        message and ``views_per_camera`` give the count of every camera); cameras cannot be linked to camera 0.
     """
     names, view_names = _check_inputs(detections, spec, image_sizes, names, view_names, min_views)
     n_cam, n_views = len(detections), len(view_names)
@@ -233,10 +234,13 @@ def _check_inputs(detections, spec, image_sizes, names, view_names, min_views):
     if len(names) != n_cam or len(view_names) != n_views or len(image_sizes) != n_cam:
         raise ValueError(f"names, image_sizes: {n_cam} expected; view_names: {n_views} expected")
     if not any(d is not None and len(d) for dets in detections for d in dets):
-        what = f"{spec.type} with {'squares' if spec.type == 'charuco' else 'inner corners'} " \
-               f"{spec.squares[0]}x{spec.squares[1]}"
-        raise CalibrationError(f"the target ({what}) was found in none of the {n_cam * n_views} images: check "
-                               f"that the target file matches the board in the images", dict.fromkeys(names, 0))
+        raise CalibrationError(f"the target ({describe_target(spec)}) was found in none of the {n_cam * n_views} "
+                               f"images: check that the target file matches the board in the images",
+                               dict.fromkeys(names, 0))
+    mismatch = target_mismatch(detections, spec)
+    if mismatch:
+        raise CalibrationError(f"the target ({describe_target(spec)}) does not match the board in the images: "
+                               f"{mismatch}; check the target file")
     counts = {n: int(sum(usable_view(d, spec) for d in dets)) for n, dets in zip(names, detections)}
     if min(counts.values()) < min_views:
         raise CalibrationError("too few usable views: " + ", ".join(f"{n} {k}" for n, k in counts.items())

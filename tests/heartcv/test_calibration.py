@@ -13,7 +13,7 @@ from heartcv.calibration import (CalibrationError, calibrate_intrinsics, outlier
 from heartcv.calibration_ba import RigProblem, _schur_solve, _State, bundle_adjust, rotvec_to_matrix
 from heartcv.calibration_rig import calibrate_rig, calibrate_rig_detailed, robust_mean_pose
 from heartcv.camera import Camera, invert_pose, pose_matrix
-from heartcv.detect import Detection
+from heartcv.detect import Detection, detect
 from heartcv.targets import TargetSpec
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
@@ -443,3 +443,48 @@ def test_sksurgery_laparoscope_real_data():
     assert rig[0].K[0, 0] == pytest.approx(2012.19, rel=0.01)
     assert rig.meta["baselines_m"]["left-right"] == pytest.approx(4.82e-3, rel=0.05)
     assert rig.meta["rms_px"] < 0.6
+
+
+# -- targets that do not match the board in the images ------------------------------------------------------------
+def test_target_mismatch_rules():
+    """The three signs of a ChArUco board of another layout (heartcv.calibration.target_mismatch) on detections
+    with known counts; a matching set, a stray marker in one image, and chessboards pass."""
+    from heartcv.calibration import describe_target, target_mismatch
+
+    spec = TargetSpec("charuco", (7, 6), 0.03, 0.022, "DICT_5X5_100")  # 6 x 5 inner corners, 21 markers
+    xy = spec.object_points()[:, :2] * 1000
+    full = Detection(np.arange(30), xy, markers=21, corners_expected=30)
+    assert target_mismatch([[full, None], [full, full]], spec) is None
+    stray = Detection(np.arange(30), xy, markers=21, foreign_markers=1, corners_expected=30)
+    assert target_mismatch([[full, full], [full, stray]], spec) is None       # 1 of 4 images
+    msg = target_mismatch([[full, stray], [stray, None]], spec)                # 2 of 3 images
+    assert msg.startswith("markers that the target does not have were found in 2 of the 3 images")
+    few = Detection(np.arange(10), xy[:10], markers=21, corners_expected=30)  # the layout promises more
+    assert "the markers found promise 60 corners but 20 were found" in target_mismatch([[few], [few]], spec)
+    assert target_mismatch([[few], [full]], spec) is None                       # 40 of 60
+    top = Detection(np.arange(24), xy[:24], markers=17, corners_expected=24)  # rows 0..3 of 0..4
+    assert "target's last row of corners" in target_mismatch([[top], [top]], spec)
+    left = Detection(np.arange(30)[np.arange(30) % 6 < 5], xy[np.arange(30) % 6 < 5], markers=18,
+                     corners_expected=25)
+    assert "target's last column of corners" in target_mismatch([[left, None]], spec)
+    assert target_mismatch([[Detection(np.arange(24), xy[:24]), full]], spec) is None  # rows seen between views
+    chess = TargetSpec("chessboard", (9, 6), 0.025)
+    assert target_mismatch([[Detection(np.arange(5), np.zeros((5, 2)))]], chess) is None
+    assert describe_target(spec) == "charuco with squares 7x6, DICT_5X5_100"
+    assert describe_target(chess) == "chessboard with inner corners 9x6"
+
+
+def test_charuco_detection_counts_markers():
+    """On a synthetic image of a 7x6 ChArUco board: the right target finds every corner, all 21 markers and no
+    foreign one; a target with a row less has 17 markers, so 4 of the board's are foreign; one with a row more
+    finds the shared rows' corners only."""
+    from tests.heartcv.test_detect import board_image, homography
+
+    spec = TargetSpec("charuco", (7, 6), 0.03, 0.022, "DICT_5X5_100")
+    img, _ = board_image(spec, homography(spec))
+    d = detect(img, spec)
+    assert (len(d), d.markers, d.foreign_markers, d.corners_expected) == (30, 21, 0, 30)
+    less = detect(img, TargetSpec("charuco", (7, 5), 0.03, 0.022, "DICT_5X5_100"))
+    assert (less.markers, less.foreign_markers) == (17, 4) and len(less) == less.corners_expected == 24
+    more = detect(img, TargetSpec("charuco", (7, 7), 0.03, 0.022, "DICT_5X5_100"))
+    assert (more.markers, more.foreign_markers) == (21, 0) and set(more.ids) == set(range(30))
