@@ -34,19 +34,25 @@ def _partial_path(output) -> Path:
               help="Box truncation of the parameters after every prediction and update: for ge the default comes "
                    "from the model file (sequential); ukf and ekf do not truncate unless asked.")
 @click.option("--joseph", is_flag=True, help="Joseph-form covariance update.")
+@click.option("--params", "params_file", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Parameters file of heartcv fit: its theta replaces the model file's parameters (kf: held at "
+                   "them; ge/ukf/ekf: the prior mean, with the fit's standard deviation unless the model file's "
+                   "prior is tighter); its registration is applied to rig-frame measurements.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
-def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, output, as_json):
+def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
     A run whose estimate becomes non-finite stops with exit 1; the steps done are written to
     OUTPUT with `.partial` before the suffix (completed_steps < frames), never to OUTPUT itself.
+
+    With --params (heartcv fit) the fitted parameters replace the model file's values.
     """
     import numpy as np
 
-    from tracker.io import FileFormatError, file_hash, read_measurements, write_estimates
+    from tracker.io import FileFormatError, file_hash, read_measurements, read_parameters, write_estimates
     from tracker.joint import JointOptions, run_joint
     from tracker.params import NAMES
     from tracker.tracking import EstimationDiverged, run_kalman
@@ -56,6 +62,16 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, o
     except FileFormatError as exc:
         raise BadInput(str(exc)) from None
     m = load_model(model_file)
+    fitted = None
+    if params_file is not None:
+        try:
+            fitted = read_parameters(params_file)
+        except FileFormatError as exc:
+            raise BadInput(str(exc)) from None
+        meas = _apply_params_registration(meas, fitted, params_file, measurements)
+        fitted_model = (fitted.meta.get("inputs_hash") or {}).get("model")
+        if fitted_model is not None and fitted_model != file_hash(model_file):
+            log.warning("%s was fitted with another model file than %s", params_file, model_file)
     if estimator == "kf" and truncation is not None:
         raise BadInput("--truncation applies to the joint estimators (ge, ukf, ekf) only")
     if estimator != "ge" and nodes is not None:
@@ -76,14 +92,23 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, o
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     meta = {"producer": "heartcv track", "model": str(model_file),
             "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
+    theta0 = prior_std = None
+    if fitted is not None:
+        from tracker.fit import tracking_prior
+
+        meta["params"] = str(params_file)
+        meta["inputs_hash"]["params"] = file_hash(params_file)
+        if estimator != "kf":
+            theta0, prior_std, source = tracking_prior(m.config, fitted)
+            meta["prior_source"] = source
     try:
         with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (spec/estimator §7.5)
             if estimator == "kf":
-                est = run_kalman(m, meas, joseph=joseph)
+                est = run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph)
             else:
                 with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
                         if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
-                    est = run_joint(m, meas, estimator, options=options,
+                    est = run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
                                     progress=lambda done, total: bar.update(1))
     except np.linalg.LinAlgError as exc:
         raise StageFailed(f"{estimator}: numerical failure ({exc}); no estimate file written") from None
@@ -124,6 +149,20 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, o
             msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
                                     for n in summary["estimated"])
         log.warning(msg)
+
+
+def _apply_params_registration(meas, fitted, params_file, measurements):
+    """Rig-frame measurements: apply the registration stored by heartcv fit; patch frame: nothing to do."""
+    if meas.frame == "rig":
+        if fitted.registration is None:
+            raise BadInput(f"{measurements}: rig-frame measurements, but {params_file} holds no registration "
+                           "(it was fitted to patch-frame measurements)")
+        from .fit import apply_stored_registration
+
+        return apply_stored_registration(meas, fitted.registration, params_file)
+    if fitted.registration is not None:
+        log.warning("%s holds a registration but %s is in the patch frame: not applied", params_file, measurements)
+    return meas
 
 
 class _NoBar:

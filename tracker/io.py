@@ -216,3 +216,227 @@ def write_study(path, arrays: dict, meta: dict | None = None):
 
 def read_study(path) -> tuple[dict, dict]:
     return _read_npz(path, STUDY_FORMAT, ())
+
+
+# -- parameters (heartcv fit) ------------------------------------------------------------------------
+PARAMETERS_FORMAT = ("heartcv.parameters", 1)
+_PARAM_KEYS = ("format", "format_version", "theta", "theta_std", "units", "estimated", "fixed", "phi", "epsilon",
+               "covariance", "cost", "dof", "reduced_chi2", "iterations", "evaluations", "converged", "status",
+               "message", "frames", "points", "observations", "at_bound", "starts", "registration")
+
+
+def _plain(o):
+    """numpy scalars and arrays -> Python floats, ints, bools and lists (for yaml.safe_dump)."""
+    if isinstance(o, dict):
+        return {str(k): _plain(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_plain(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _plain(o.tolist())
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, Path):
+        return str(o)
+    return o
+
+
+def parameters_to_dict(result, meta: dict | None = None) -> dict:
+    """The YAML mapping of a parameters file (``heartcv.parameters`` v1) for a ``tracker.fit.FitResult``."""
+    from .params import NAMES, UNITS
+
+    est = list(result.estimated)
+    d = {"format": PARAMETERS_FORMAT[0], "format_version": PARAMETERS_FORMAT[1], "heartcv_version": __version__}
+    md = dict(result.meta)
+    md.update(meta or {})
+    md.pop("heartcv_version", None)
+    d.update({
+        "theta": dict(zip(NAMES, map(float, result.theta))),
+        "theta_std": dict(zip(NAMES, map(float, result.theta_std))),
+        "units": dict(zip(NAMES, UNITS)),
+        "estimated": est,
+        "fixed": list(result.fixed),
+        "phi": dict(zip(est, map(float, result.phi))),
+        "epsilon": {"alpha1": float(result.epsilon[0]), "alpha2": float(result.epsilon[1])},
+        "covariance": {
+            "theta": None if result.cov_theta is None else result.cov_theta,
+            "phi": None if result.cov_phi is None else result.cov_phi,
+            "scaled": bool(result.covariance_scaled),
+        },
+        "cost": float(result.cost),
+        "dof": int(result.dof),
+        "reduced_chi2": float(result.reduced_chi2),
+        "iterations": int(result.iterations),
+        "evaluations": int(result.evaluations),
+        "converged": bool(result.converged),
+        "status": int(result.status),
+        "message": str(result.message),
+        "frames": int(result.frames),
+        "points": int(result.points),
+        "observations": int(result.observations),
+        "at_bound": list(result.at_bound),
+        "starts": list(result.starts),
+        "registration": result.registration,
+    })
+    for k, v in md.items():
+        if k in _PARAM_KEYS:
+            raise ValueError(f"meta: key {k!r} is reserved in a parameters file")
+        d[k] = v
+    return _plain(d)
+
+
+def parameters_from_dict(d, path="<parameters>"):
+    """A ``tracker.fit.FitResult`` from the mapping of a parameters file; FileFormatError naming the field."""
+    from .fit import FitResult
+    from .params import NAMES
+
+    def bad(field_name, msg):
+        return FileFormatError(path, f"{field_name}: {msg}")
+
+    if not isinstance(d, dict):
+        raise FileFormatError(path, "a YAML mapping expected: not a heartcv parameters file")
+    if d.get("format") != PARAMETERS_FORMAT[0]:
+        raise FileFormatError(path, f"format {PARAMETERS_FORMAT[0]!r} expected, got {d.get('format')!r}")
+    if d.get("format_version") != PARAMETERS_FORMAT[1]:
+        raise FileFormatError(path, f"{PARAMETERS_FORMAT[0]} version {PARAMETERS_FORMAT[1]} supported, "
+                                    f"got {d.get('format_version')!r}")
+
+    def number(v, field_name):
+        if isinstance(v, str):  # PyYAML reads 1e-3 (no dot) as a string
+            try:
+                v = float(v)
+            except ValueError:
+                raise bad(field_name, f"a number expected, got {v!r}") from None
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise bad(field_name, f"a number expected, got {v!r}")
+        return float(v)
+
+    def per_name(key, names, required=True, default=0.0):
+        v = d.get(key)
+        if v is None:
+            if required:
+                raise bad(key, "required mapping {name: value} is missing")
+            return np.full(len(names), default)
+        if not isinstance(v, dict) or set(v) - set(names) or (required and set(names) - set(v)):
+            raise bad(key, f"a mapping with the keys {list(names)} expected, got {v!r}")
+        return np.array([number(v.get(n, default), f"{key}.{n}") for n in names])
+
+    def matrix(v, field_name, M):
+        if v is None:
+            return None
+        try:
+            a = np.array([[number(x, field_name) for x in row] for row in v], float)
+        except TypeError:
+            raise bad(field_name, f"a {M}x{M} list of lists expected") from None
+        if a.shape != (M, M) or not np.isfinite(a).all():
+            raise bad(field_name, f"a finite {M}x{M} matrix expected, got shape {a.shape}")
+        if np.abs(a - a.T).max(initial=0) > 1e-9 * np.abs(a).max(initial=0):
+            raise bad(field_name, "not symmetric")
+        return a
+
+    theta = per_name("theta", NAMES)
+    if not (theta[0] > 0 and theta[3] > 0 and theta[1] >= 0 and theta[2] >= 0 and 0 < theta[4] < 0.5
+            and np.isfinite(theta).all()):
+        raise bad("theta", f"outside the physical range (rho, E > 0; alpha >= 0; 0 < nu < 0.5): {theta.tolist()}")
+    theta_std = per_name("theta_std", NAMES, required=False)
+    est = d.get("estimated", [])
+    if not isinstance(est, list) or any(n not in NAMES for n in est) or len(set(est)) != len(est):
+        raise bad("estimated", f"a list of distinct names from {list(NAMES)} expected, got {est!r}")
+    est = [n for n in NAMES if n in est]
+    M = len(est)
+    eps = d.get("epsilon") or {}
+    if not isinstance(eps, dict) or set(eps) - {"alpha1", "alpha2"}:
+        raise bad("epsilon", f"a mapping {{alpha1, alpha2}} expected, got {eps!r}")
+    epsilon = np.array([
+        number(eps["alpha1"], "epsilon.alpha1") if "alpha1" in eps else (1e-3 * theta[1] if theta[1] > 0 else 1e-3),
+        number(eps["alpha2"], "epsilon.alpha2") if "alpha2" in eps else (1e-3 * theta[2] if theta[2] > 0 else 1e-6),
+    ])
+    if not (epsilon > 0).all():
+        raise bad("epsilon", f"positive offsets expected, got {epsilon.tolist()}")
+    if d.get("phi") is not None:
+        phi = per_name("phi", est)
+    else:  # a hand-written file: phi of theta
+        from .params import s_from_nu
+
+        full = np.array([np.log(theta[0]), np.log(theta[1] + epsilon[0]), np.log(theta[2] + epsilon[1]),
+                         np.log(theta[3]), s_from_nu(theta[4])])
+        phi = full[[NAMES.index(n) for n in est]]
+    cov = d.get("covariance") or {}
+    if not isinstance(cov, dict) or set(cov) - {"theta", "phi", "scaled"}:
+        raise bad("covariance", f"a mapping {{theta, phi, scaled}} expected, got {cov!r}")
+    cov_theta = matrix(cov.get("theta"), "covariance.theta", M)
+    cov_phi = matrix(cov.get("phi"), "covariance.phi", M)
+    scaled = cov.get("scaled", False)
+    if not isinstance(scaled, bool):
+        raise bad("covariance.scaled", f"true or false expected, got {scaled!r}")
+    reg = d.get("registration")
+    if reg is not None:
+        if not isinstance(reg, dict) or "patch_from_rig" not in reg:
+            raise bad("registration", "a mapping with patch_from_rig (4x4) expected")
+        T = np.array(reg["patch_from_rig"], float) if isinstance(reg["patch_from_rig"], list) else None
+        if T is None or T.shape != (4, 4) or not np.isfinite(T).all():
+            raise bad("registration.patch_from_rig", "a finite 4x4 matrix expected")
+
+    def opt(key, kind, default):
+        v = d.get(key, default)
+        if kind is float:
+            return number(v, key)
+        if kind is int:
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise bad(key, f"an integer expected, got {v!r}")
+            return v
+        if kind is bool:
+            if not isinstance(v, bool):
+                raise bad(key, f"true or false expected, got {v!r}")
+            return v
+        return str(v)
+
+    starts = d.get("starts") or []
+    at_bound = d.get("at_bound") or []
+    if not isinstance(starts, list) or not all(isinstance(s, dict) for s in starts):
+        raise bad("starts", "a list of mappings expected")
+    if not isinstance(at_bound, list) or any(n not in est for n in at_bound):
+        raise bad("at_bound", f"a list of estimated names expected, got {at_bound!r}")
+    meta = {k: v for k, v in d.items() if k not in _PARAM_KEYS}
+    try:
+        return FitResult(
+            theta, theta_std, tuple(est), phi, cov_phi, cov_theta, epsilon,
+            opt("cost", float, float("nan")), opt("dof", int, 0), opt("reduced_chi2", float, float("nan")),
+            scaled,
+            opt("iterations", int, 0), opt("evaluations", int, 0), opt("converged", bool, True),
+            opt("status", int, 0), opt("message", str, ""), opt("frames", int, 0), opt("points", int, 0),
+            opt("observations", int, 0), tuple(starts), tuple(at_bound), reg, meta,
+        )
+    except ValueError as exc:
+        raise FileFormatError(path, str(exc)) from None
+
+
+def write_parameters(path, result, meta: dict | None = None):
+    """Write a ``tracker.fit.FitResult`` as a parameters file (YAML, ``heartcv.parameters`` v1), atomically."""
+    import yaml
+
+    d = parameters_to_dict(result, meta)
+    text = ("# heartcv parameters: fitted theta [rho, alpha1, alpha2, E, nu] (SI) and its covariance, in SI and in\n"
+            "# the estimators' coordinates phi (estimated subset). docs/formats.md, parameters file.\n")
+    text += yaml.safe_dump(d, sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
+    with atomic_path(path, suffix=Path(path).suffix or ".yaml") as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
+
+
+def read_parameters(path):
+    """Read a parameters file into a ``tracker.fit.FitResult`` (FileFormatError names the file and field)."""
+    import yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise FileFormatError(path, f"cannot read parameters file ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise FileFormatError(path, f"not valid YAML: {exc}") from None
+    return parameters_from_dict(data, path)

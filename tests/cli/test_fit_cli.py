@@ -1,0 +1,248 @@
+"""CLI: heartcv fit and heartcv track --params (CliRunner, exit codes, artifacts read back)."""
+
+import json
+import sys
+import types
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cli.fit import fit as fit_cmd
+from cli.main import main
+from tests.conftest import SAMPLES
+from tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
+from tracker.measurements import MeasurementSet
+from tracker.params import NAMES
+
+PAPER = str(SAMPLES / "paper_patch.yaml")
+SIMULATION = str(SAMPLES / "paper_simulation.yaml")
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """`heartcv model simulate` files: paper_patch 1 s (E, nu) and paper_simulation 3 s (all five)."""
+    d = tmp_path_factory.mktemp("fit")
+    runner = CliRunner()
+    out = {}
+    for key, model, duration in (("patch", PAPER, "1"), ("sim", SIMULATION, "3")):
+        path = str(d / f"{key}.npz")
+        r = runner.invoke(main, ["model", "simulate", model, "--duration", duration, "--seed", "3", "-o", path])
+        assert r.exit_code == 0, r.output
+        out[key] = path
+    out["dir"] = d
+    return out
+
+
+def _ok(result):
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def test_fit_json_file_and_recovery(files, tmp_path):
+    """All five parameters of paper_simulation from a `model simulate` file: |z| < 3.5 each (measured: all
+    within 0.82 sigma for seed 3); the JSON summary and the file agree."""
+    out = tmp_path / "p.yaml"
+    s = _ok(CliRunner().invoke(fit_cmd, [files["sim"], "--model", SIMULATION, "-o", str(out), "--json"]))
+    for key in ("theta", "theta_std", "cost", "converged", "frames", "points", "starts", "iterations",
+                "reduced_chi2", "estimated", "fixed", "covariance_scaled", "dof", "message", "at_bound"):
+        assert key in s, key
+    assert s["converged"] and s["frames"] == 91 and s["points"] == 14 and s["starts"] == 3
+    assert s["estimated"] == list(NAMES) and s["fixed"] == []
+    p = read_parameters(out)
+    assert p.theta.tolist() == [s["theta"][n] for n in NAMES] and p.cost == s["cost"]
+    truth = np.array([1050.0, 2.0, 0.003, 150.0, 0.45])
+    z = (p.theta - truth) / p.theta_std
+    assert np.abs(z).max() < 3.5, z
+    assert abs(s["reduced_chi2"] - 1) < 5 * np.sqrt(2 / s["dof"])
+    assert p.meta["producer"] == "heartcv fit" and set(p.meta["inputs_hash"]) == {"measurements", "model"}
+    assert p.meta["seed"] == 0 and p.registration is None
+
+
+def test_fit_frames_and_seed(files, tmp_path):
+    out = tmp_path / "p.yaml"
+    s = _ok(CliRunner().invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(out), "--frames", "20",
+                                         "--starts", "2", "--seed", "5", "--json"]))
+    assert s["frames"] == 20 and s["starts"] == 2 and s["estimated"] == ["E", "nu"]
+    assert s["fixed"] == ["rho", "alpha1", "alpha2"] and s["theta_std"]["rho"] == 0.0
+    assert read_parameters(out).meta["seed"] == 5
+
+
+def test_fit_not_converged_exits_1_and_writes_nothing(files, tmp_path):
+    out = tmp_path / "p.yaml"
+    r = CliRunner().invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(out), "--max-evaluations", "1"])
+    assert r.exit_code == 1 and "did not converge" in r.output and "nothing written" in r.output
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_fit_bad_input_exits_2(files, tmp_path):
+    runner = CliRunner()
+    m = read_measurements(files["patch"])
+    mm = tmp_path / "mm.npz"  # millimetres instead of metres
+    write_measurements(mm, MeasurementSet(m.times, m.point_ids, m.positions * 1e3, m.covariances * 1e6,
+                                          m.reference * 1e3, m.inputs, m.input_names, m.input_units))
+    out = tmp_path / "p.yaml"
+    r = runner.invoke(fit_cmd, [str(mm), "--model", PAPER, "-o", str(out)])
+    assert r.exit_code == 2 and "none of the 14 points lies on the model's patch" in r.output
+    r = runner.invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(tmp_path / "p.txt")])
+    assert r.exit_code == 2 and ".yaml" in r.output
+    r = runner.invoke(fit_cmd, [str(tmp_path / "missing.npz"), "--model", PAPER, "-o", str(out)])
+    assert r.exit_code == 2
+    empty = tmp_path / "empty.yaml"
+    empty.write_text((SAMPLES / "paper_patch.yaml").read_text().replace("estimate: [E, nu]", "estimate: []"))
+    r = runner.invoke(fit_cmd, [files["patch"], "--model", str(empty), "-o", str(out)])
+    assert r.exit_code == 2 and "nothing to fit" in r.output
+    assert not out.exists()
+
+
+# -- track --params ------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def params(files):
+    out = files["dir"] / "patch_params.yaml"
+    r = CliRunner().invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_track_kf_with_params_uses_the_fitted_theta(files, params, tmp_path):
+    est = tmp_path / "e.npz"
+    s = _ok(CliRunner().invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(params),
+                                      "--estimator", "kf", "-o", str(est), "--json"]))
+    p = read_parameters(params)
+    e = read_estimates(est)
+    assert np.array_equal(e.theta, np.broadcast_to(p.theta, e.theta.shape))
+    assert [s["theta_final"][n] for n in NAMES] == p.theta.tolist()
+    assert e.meta["params"] == str(params) and "params" in e.meta["inputs_hash"]
+    # without --params: the model file's theta, as before
+    est2 = tmp_path / "e2.npz"
+    _ok(CliRunner().invoke(main, ["track", files["patch"], "--model", PAPER, "-o", str(est2), "--json"]))
+    assert read_estimates(est2).theta[0].tolist() == [1050.0, 2.39, 0.003, 150000.0, 0.45]
+
+
+def test_track_ge_with_params_starts_at_the_fit(files, params, tmp_path):
+    est = tmp_path / "e.npz"
+    _ok(CliRunner().invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(params),
+                                  "--estimator", "ge", "--nodes", "3", "-o", str(est), "--json"]))
+    p = read_parameters(params)
+    e = read_estimates(est)
+    assert e.meta["theta0"] == p.theta.tolist()
+    fit_sd = np.sqrt(np.diag(p.cov_phi))
+    np.testing.assert_allclose(e.meta["prior_std_phi"], np.minimum(fit_sd, [0.5, 0.5]), rtol=1e-9)
+    assert e.meta["prior_source"] == {"E": "fit", "nu": "fit"}
+
+
+def test_track_params_errors(files, params, tmp_path):
+    runner = CliRunner()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: heartcv.model\n")
+    r = runner.invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(bad), "-o",
+                             str(tmp_path / "e.npz")])
+    assert r.exit_code == 2 and "heartcv.parameters" in r.output
+    # a fitted theta outside the tracking model's box
+    out = tmp_path / "far.yaml"
+    out.write_text("format: heartcv.parameters\nformat_version: 1\nestimated: [E]\n"
+                   "theta: {rho: 1050, alpha1: 2.39, alpha2: 0.003, E: 5.0e+8, nu: 0.45}\n")
+    r = runner.invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(out), "--estimator", "ge",
+                             "-o", str(tmp_path / "e.npz")])
+    assert r.exit_code == 2 and "outside its bounds" in r.output
+    assert not (tmp_path / "e.npz").exists()
+
+
+# -- rig-frame files: registration ---------------------------------------------------------------------------
+RIG_FROM_PATCH = np.array([[0.0, -1.0, 0.0, 0.01], [1.0, 0.0, 0.0, -0.02], [0.0, 0.0, 1.0, 0.3], [0, 0, 0, 1]])
+
+
+def _transform(T, m: MeasurementSet, keep, frame):
+    R, t = T[:3, :3], T[:3, 3]
+    return MeasurementSet(m.times, m.point_ids[keep], m.positions[:, keep] @ R.T + t,
+                          R @ m.covariances[:, keep] @ R.T, m.reference[keep] @ R.T + t, m.inputs, m.input_names,
+                          m.input_units, frame)
+
+
+@pytest.fixture
+def fake_registration(monkeypatch):
+    """A stand-in for tracker.registration with its API: it knows the true transform."""
+
+    @dataclass(frozen=True)
+    class Registration:
+        patch_from_rig: np.ndarray
+        rms_m: float
+        on_patch: np.ndarray
+        n_points: int
+        converged: bool
+        message: str
+
+    calls = []
+
+    def register(meas, model, *, frames=10, initial=None):
+        on = np.ones(meas.n_points, bool)
+        on[0] = False  # pretend the first point lies off the patch
+        calls.append(frames)
+        return Registration(np.linalg.inv(RIG_FROM_PATCH), 2e-5, on, int(on.sum()), True, "ok")
+
+    def to_patch_frame(meas, reg):
+        calls.append("apply")
+        return _transform(np.asarray(reg.patch_from_rig), meas, np.flatnonzero(reg.on_patch), "patch")
+
+    mod = types.ModuleType("tracker.registration")
+    mod.Registration, mod.register, mod.to_patch_frame = Registration, register, to_patch_frame
+    monkeypatch.setitem(sys.modules, "tracker.registration", mod)
+    return calls
+
+
+def test_rig_frame_fit_registers_and_track_reuses_it(files, tmp_path, fake_registration):
+    m = read_measurements(files["patch"])
+    rig = tmp_path / "rig.npz"
+    write_measurements(rig, _transform(RIG_FROM_PATCH, m, np.arange(m.n_points), "rig"))
+    out = tmp_path / "p.yaml"
+    s = _ok(CliRunner().invoke(fit_cmd, [str(rig), "--model", PAPER, "-o", str(out), "--json"]))
+    assert s["points"] == 13 and s["registration_rms_m"] == 2e-5
+    p = read_parameters(out)
+    np.testing.assert_array_equal(p.registration["patch_from_rig"], np.linalg.inv(RIG_FROM_PATCH))
+    assert p.registration["points_on_patch"] == m.point_ids[1:].tolist()
+    est = tmp_path / "e.npz"
+    _ok(CliRunner().invoke(main, ["track", str(rig), "--model", PAPER, "--params", str(out), "-o", str(est),
+                                  "--json"]))
+    e = read_estimates(est)
+    assert fake_registration == [10, "apply", "apply"]
+    assert e.point_ids.tolist() == m.point_ids[1:].tolist() and np.array_equal(e.theta[0], p.theta)
+    # the same parameters on the patch-frame file: registration not applied, with a warning
+    r = CliRunner().invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(out), "-o",
+                                  str(tmp_path / "e2.npz")])
+    assert r.exit_code == 0 and "not applied" in r.output
+
+
+def test_rig_frame_without_registration_module_exits_2(files, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "tracker.registration", None)  # import fails
+    m = read_measurements(files["patch"])
+    rig = tmp_path / "rig.npz"
+    write_measurements(rig, _transform(RIG_FROM_PATCH, m, np.arange(m.n_points), "rig"))
+    out = tmp_path / "p.yaml"
+    r = CliRunner().invoke(fit_cmd, [str(rig), "--model", PAPER, "-o", str(out)])
+    assert r.exit_code == 2 and "registration" in r.output and "not available" in r.output
+    assert not out.exists()
+
+
+def test_rig_frame_track_needs_a_registration_in_params(files, params, tmp_path, fake_registration):
+    m = read_measurements(files["patch"])
+    rig = tmp_path / "rig.npz"
+    write_measurements(rig, _transform(RIG_FROM_PATCH, m, np.arange(m.n_points), "rig"))
+    r = CliRunner().invoke(main, ["track", str(rig), "--model", PAPER, "--params", str(params), "-o",
+                                  str(tmp_path / "e.npz")])
+    assert r.exit_code == 2 and "holds no registration" in r.output
+
+
+@pytest.mark.slow
+def test_fit_recovery_over_seeds_cli(tmp_path):
+    """End to end over 5 seeds (paper_simulation, 3 s, three starts each): every |z| < 3.5."""
+    runner = CliRunner()
+    truth = np.array([1050.0, 2.0, 0.003, 150.0, 0.45])
+    for seed in range(5):
+        meas = tmp_path / f"m{seed}.npz"
+        assert runner.invoke(main, ["model", "simulate", SIMULATION, "--duration", "3", "--seed", str(seed), "-o",
+                                    str(meas)]).exit_code == 0
+        out = tmp_path / f"p{seed}.yaml"
+        s = _ok(runner.invoke(fit_cmd, [str(meas), "--model", SIMULATION, "-o", str(out), "--json"]))
+        z = (np.array([s["theta"][n] for n in NAMES]) - truth) / np.array([s["theta_std"][n] for n in NAMES])
+        assert np.abs(z).max() < 3.5 and s["reduced_chi2"] < 1 + 5 * np.sqrt(2 / s["dof"])

@@ -1,0 +1,453 @@
+"""Weighted least-squares fit of the material parameters to a measurement set (paper §IV; docs/cli.md §12).
+
+The estimated subset of ``theta = [rho, alpha1, alpha2, E, nu]`` (the model file's ``estimation.estimate``) is
+optimised in the estimators' coordinates ``phi`` (:mod:`tracker.params`) inside the box ``estimation.bounds``
+mapped to ``phi``, with ``scipy.optimize.least_squares`` (``method='trf'``, ``x_scale='jac'``).
+
+Prediction. The patch starts at the static equilibrium of the first frame's input and follows the same
+discretisation as the estimators (exact, first-order-hold input, the measurement file's frame interval), with
+no noise: ``x_0 = [K^-1 F u_0; 0]``, ``x_k = A x_{k-1} + B0 u_{k-1} + B1 u_k``.
+
+Residuals. A measured point is ``y_kp = X_p + r(t_k) + H_p x_k + v_kp``, ``v_kp ~ N(0, R_kp)``, with ``r(t)`` the
+known respiration translation. The undeformed position ``X_p`` is not known for points from ``heartcv
+measure`` (their ``reference`` is the position in the frame they were born in, already deformed), so the fit
+uses only displacements: ``X_p`` is a nuisance offset per point, eliminated exactly by generalised least
+squares,
+
+    m_p(theta) = (sum_k R_kp^-1)^-1 sum_k R_kp^-1 e_kp,     e_kp = y_kp - r(t_k) - H_p x_k(theta),
+    residual_kp = L_kp^-1 (e_kp - m_p),                      L_kp L_kp^T = R_kp (Cholesky).
+
+This is the displacement form ``y_kp - y_bp = H_p (x_k - x_b)`` relative to a point's birth frame b, weighted
+with the full covariance of those differences (the birth frame's noise is common to all of them): any full set
+of such contrasts gives the same cost (tested), and the form above whitens them exactly, so that at the true
+parameters ``2 cost`` is chi-square with ``3 n_obs - 3 n_points - M`` degrees of freedom. Points seen in fewer
+than two frames of the fitted window carry no displacement and are not used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import logging
+
+import numpy as np
+import scipy.linalg as sla
+
+from .measurements import MeasurementSet
+from .model import PatchModel
+from .params import NAMES, ParameterSpace
+from .tracking import ObservedPoints, frame_interval, locate_points
+
+__all__ = ["FitProblem", "FitResult", "fit", "tracking_prior", "S_LIMIT", "SINGULAR_RTOL"]
+
+log = logging.getLogger(__name__)
+
+S_LIMIT = 15.0
+"""|s| = |log(lambda/mu)| is kept below this (nu in [1.5e-7, 0.5 - 7.6e-8]) where the box leaves s unbounded."""
+
+PHI_LIMIT = 50.0
+"""Other phi coordinates (logarithms) are kept within +-50 where the box leaves them unbounded."""
+
+SINGULAR_RTOL = 1e-8
+"""Smallest singular value of the column-normalised Jacobian, relative, below which a fit is singular."""
+
+
+class FitProblem:
+    """The weighted least-squares problem of one model and one measurement set (patch frame).
+
+    Parameters
+    ----------
+    model : PatchModel
+    meas : MeasurementSet
+        In the patch frame (register rig-frame files first).
+    frames : int, optional
+        Use the first ``frames`` frames (default all); at least 2.
+    points : ObservedPoints, optional
+        Placement of the points on the model (default :func:`tracker.tracking.locate_points`).
+
+    Attributes
+    ----------
+    keep : ndarray (P_used,) int      indices into the measurement set's points used by the fit
+    frames : int                      frames used (K)
+    n_obs : int                       observations (point-frames) used
+    dof : int                         ``3 n_obs - 3 P_used`` (before subtracting the estimated parameters)
+    """
+
+    def __init__(self, model: PatchModel, meas: MeasurementSet, frames: int | None = None,
+                 points: ObservedPoints | None = None):
+        K = meas.n_frames if frames is None else int(frames)
+        if K < 2:
+            raise ValueError(f"frames: at least 2 frames are needed for a fit, got {K}")
+        K = min(K, meas.n_frames)
+        if K < 2:
+            raise ValueError("measurements: a fit needs at least 2 frames, the file has 1")
+        pts = points or locate_points(model, meas)
+        self.model = model
+        self.dt = frame_interval(model, meas)
+        self.inputs = meas.input_columns(model.input_names)[:K]
+        trans = meas.translation()[:K]
+        y = meas.positions[:K, pts.keep]
+        seen = np.isfinite(y).all(axis=2)
+        use = seen.sum(axis=0) >= 2
+        if not use.any():
+            raise ValueError(f"measurements: no point on the patch is seen in two of the first {K} frames")
+        self.keep = pts.keep[use]
+        self.dropped = np.setdiff1d(np.arange(meas.n_points), self.keep)
+        P = int(use.sum())
+        r = model.r
+        H = pts.observation.H.reshape(-1, 3, 2 * r)[use]  # (P, 3, 2r)
+        self.H_q = H[:, :, :r].reshape(3 * P, r)  # positions depend on q only
+        self.seen = seen[:, use]
+        self.y = (y[:, use] - trans[:, None, :])[self.seen]  # (n_obs, 3)
+        cov = meas.covariances[:K, pts.keep][:, use][self.seen]  # (n_obs, 3, 3)
+        L = np.linalg.cholesky(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+        eye = np.broadcast_to(np.eye(3), L.shape)
+        self.L_inv = np.linalg.solve(L, eye)  # (n_obs, 3, 3)
+        R_inv = np.swapaxes(self.L_inv, -1, -2) @ self.L_inv
+        self._frame_idx, self._point_idx = np.nonzero(self.seen)
+        G = np.zeros((P, 3, 3))
+        np.add.at(G, self._point_idx, R_inv)
+        self._R_inv = R_inv
+        self._G_inv = np.linalg.inv(G)
+        self.frames = K
+        self.n_points = P
+        self.n_obs = int(self.seen.sum())
+        self.dof = 3 * self.n_obs - 3 * P
+
+    # -- model side ------------------------------------------------------------------------------
+    def states(self, theta) -> np.ndarray:
+        """Deterministic kinematic states (K, 2r) from equilibrium at ``u_0``."""
+        sysd = self.model.system(theta, self.dt)
+        u = self.inputs
+        drive = u[:-1] @ sysd.B0.T + u[1:] @ sysd.B1.T
+        X = np.empty((self.frames, self.model.state_dim))
+        x = self.model.static_state(theta, u[0])
+        X[0] = x
+        A = sysd.A
+        for k in range(1, self.frames):
+            x = A @ x + drive[k - 1]
+            X[k] = x
+        return X
+
+    def displacements(self, theta) -> np.ndarray:
+        """Model displacements ``H_p x_k`` (K, P_used, 3) of the used points."""
+        X = self.states(theta)
+        return (X[:, : self.model.r] @ self.H_q.T).reshape(self.frames, self.n_points, 3)
+
+    # -- residuals --------------------------------------------------------------------------------
+    def residuals(self, theta) -> np.ndarray:
+        """Whitened residuals with the per-point offsets profiled out, shape (3 n_obs,)."""
+        e = self.y - self.displacements(theta)[self.seen]  # (n_obs, 3)
+        b = np.zeros((self.n_points, 3))
+        np.add.at(b, self._point_idx, np.einsum("nij,nj->ni", self._R_inv, e))
+        m = np.einsum("pij,pj->pi", self._G_inv, b)
+        return np.einsum("nij,nj->ni", self.L_inv, e - m[self._point_idx]).ravel()
+
+    def offsets(self, theta) -> np.ndarray:
+        """The profiled offsets ``m_p`` (P_used, 3): the estimated undeformed positions (patch frame, m)."""
+        e = self.y - self.displacements(theta)[self.seen]
+        b = np.zeros((self.n_points, 3))
+        np.add.at(b, self._point_idx, np.einsum("nij,nj->ni", self._R_inv, e))
+        return np.einsum("pij,pj->pi", self._G_inv, b)
+
+    def chi2(self, theta) -> float:
+        """``sum residuals^2`` (= 2 cost)."""
+        r = self.residuals(theta)
+        return float(r @ r)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Outcome of :func:`fit` (and the content of a parameters file, docs/formats.md §12).
+
+    Attributes
+    ----------
+    theta : ndarray (5,)              fitted [rho, alpha1, alpha2, E, nu] (SI); fixed ones at the model's value
+    theta_std : ndarray (5,)          standard deviation (delta method from phi; 0 for fixed parameters)
+    estimated : tuple of str          fitted parameters, NAMES order (rows/columns of the covariances)
+    phi : ndarray (M,)                fitted estimated subset in phi coordinates
+    cov_phi, cov_theta : ndarray (M, M) or None   covariance in phi and in SI units (None when unavailable)
+    epsilon : ndarray (2,)            the alpha offsets eps1, eps2 of phi
+    cost : float                      0.5 * sum of squared whitened residuals at the solution
+    dof : int                         residual degrees of freedom, ``3 n_obs - 3 points - M``
+    reduced_chi2 : float              ``2 cost / dof``
+    covariance_scaled : bool          whether the covariance was multiplied by ``reduced_chi2`` (> 1)
+    iterations, evaluations : int     Jacobian and residual evaluations of the winning start
+    converged : bool                  least_squares status > 0 and a non-singular Jacobian
+    status : int                      least_squares status of the winning start
+    message : str                     reason of success or failure
+    frames, points, observations : int   frames, points and point-frames used
+    starts : tuple of dict            per start: theta0, theta, cost, status, evaluations, message
+    at_bound : tuple of str           estimated parameters at a bound of the box at the solution
+    registration : dict or None       rig-to-patch registration applied before the fit (CLI)
+    meta : dict                       provenance (producer, inputs_hash, seed, ...)
+    """
+
+    theta: np.ndarray
+    theta_std: np.ndarray
+    estimated: tuple
+    phi: np.ndarray
+    cov_phi: np.ndarray | None
+    cov_theta: np.ndarray | None
+    epsilon: np.ndarray
+    cost: float
+    dof: int
+    reduced_chi2: float
+    covariance_scaled: bool
+    iterations: int
+    evaluations: int
+    converged: bool
+    status: int
+    message: str
+    frames: int
+    points: int
+    observations: int
+    starts: tuple = ()
+    at_bound: tuple = ()
+    registration: dict | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        th = np.array(self.theta, float).reshape(-1)
+        sd = np.array(self.theta_std, float).reshape(-1)
+        if th.shape != (5,) or sd.shape != (5,):
+            raise ValueError(f"theta/theta_std: shape (5,) expected, got {th.shape} and {sd.shape}")
+        est = tuple(self.estimated)
+        if any(n not in NAMES for n in est) or len(set(est)) != len(est):
+            raise ValueError(f"estimated: distinct names from {NAMES} expected, got {est}")
+        est = tuple(n for n in NAMES if n in est)
+        M = len(est)
+        phi = np.array(self.phi, float).reshape(-1)
+        if phi.shape != (M,):
+            raise ValueError(f"phi: shape ({M},) expected, got {phi.shape}")
+        for name in ("cov_phi", "cov_theta"):
+            c = getattr(self, name)
+            if c is not None:
+                c = np.array(c, float)
+                if c.shape != (M, M):
+                    raise ValueError(f"{name}: shape ({M}, {M}) expected, got {c.shape}")
+                c.setflags(write=False)
+                object.__setattr__(self, name, c)
+        eps = np.array(self.epsilon, float).reshape(-1)
+        if eps.shape != (2,):
+            raise ValueError(f"epsilon: shape (2,) expected, got {eps.shape}")
+        for name, val in (("theta", th), ("theta_std", sd), ("phi", phi), ("epsilon", eps)):
+            val.setflags(write=False)
+            object.__setattr__(self, name, val)
+        object.__setattr__(self, "estimated", est)
+        object.__setattr__(self, "at_bound", tuple(self.at_bound))
+        object.__setattr__(self, "starts", tuple(self.starts))
+
+    @property
+    def fixed(self) -> tuple:
+        """Names of the parameters held at the model file's values."""
+        return tuple(n for n in NAMES if n not in self.estimated)
+
+    @property
+    def index(self) -> np.ndarray:
+        return np.array([NAMES.index(n) for n in self.estimated], dtype=int)
+
+
+def _fit_bounds(space: ParameterSpace):
+    lo, up = space.bounds_phi
+    limit = np.array([S_LIMIT if n == "nu" else PHI_LIMIT for n in space.estimated])
+    lo = np.where(np.isfinite(lo), lo, -limit)
+    up = np.where(np.isfinite(up), up, limit)
+    lo, up = np.maximum(lo, -limit), np.minimum(up, limit)
+    margin = 1e-9 * np.maximum(1.0, np.abs(np.r_[lo, up]).reshape(2, -1).max(axis=0))
+    return lo, up, lo + margin, up - margin
+
+
+def _theta_of(space: ParameterSpace, theta_fixed, x):
+    """Full theta with the estimated entries from phi ``x`` and the others exactly at ``theta_fixed``."""
+    phi = space.to_phi(theta_fixed)
+    phi[space.index] = x
+    theta = np.array(theta_fixed, float)
+    theta[space.index] = space.from_phi(phi)[space.index]
+    return theta
+
+
+def _starts(x_model, prior_std, count, rng, inner_lo, inner_up):
+    starts = [np.clip(x_model, inner_lo, inner_up)]
+    if count > 1:
+        if rng is None:
+            raise ValueError("rng: a numpy Generator is needed for more than one start")
+        draws = x_model + prior_std * rng.standard_normal((count - 1, x_model.size))
+        starts.extend(np.clip(draws, inner_lo, inner_up))
+    return starts
+
+
+def _covariance(J, names):
+    """``(J^T J)^-1`` by SVD of the column-normalised Jacobian; (None, reason) when singular."""
+    norms = np.linalg.norm(J, axis=0)
+    if not np.isfinite(J).all():
+        return None, "the Jacobian at the solution is not finite"
+    if (norms == 0).any():
+        bad = [names[i] for i in np.flatnonzero(norms == 0)]
+        return None, f"singular Jacobian: the residuals do not depend on {', '.join(bad)}"
+    Jn = J / norms
+    _, s, Vt = np.linalg.svd(Jn, full_matrices=False)
+    if s[-1] < SINGULAR_RTOL * s[0]:
+        weak = np.abs(Vt[s < SINGULAR_RTOL * s[0]]).max(axis=0)
+        bad = [names[i] for i in np.flatnonzero(weak > 0.3)] or list(names)
+        return None, (f"singular Jacobian (condition {s[0] / s[-1]:.3g}): {', '.join(bad)} cannot be told apart "
+                      "from these data; fix them (estimation.estimate) or use data that excite them")
+    cov_n = (Vt.T / s**2) @ Vt
+    return cov_n / np.outer(norms, norms), None
+
+
+def fit(model: PatchModel, meas: MeasurementSet, rng: np.random.Generator | None = None, *,
+        frames: int | None = None, starts: int = 1, max_evaluations: int | None = None,
+        points: ObservedPoints | None = None, problem: FitProblem | None = None) -> FitResult:
+    """Bounded weighted least-squares fit of the model file's estimated parameters (paper §IV).
+
+    Parameters
+    ----------
+    model : PatchModel
+        Its ``config.theta`` is the first start and the value of the fixed parameters; ``estimation.estimate``
+        the fitted subset; ``estimation.bounds`` the box; the prior (``prior_std``/``prior_std_si``) the spread
+        of the other starts.
+    meas : MeasurementSet
+        Patch frame.
+    rng : numpy.random.Generator, optional
+        Draws the starts after the first (needed when ``starts > 1``).
+    frames : int, optional
+        Fit the first ``frames`` frames (default all).
+    starts : int
+        The model file's value plus ``starts - 1`` draws from the prior ``N(phi(theta), diag(prior_std^2))``,
+        clipped into the box. The converged start with the lowest cost wins.
+    max_evaluations : int, optional
+        ``max_nfev`` of each least_squares run (default scipy's, 100 per parameter).
+    problem : FitProblem, optional
+        A prepared problem (then ``frames`` and ``points`` are ignored).
+
+    Returns
+    -------
+    FitResult
+        ``converged`` is False, with the reason in ``message``, when no start converged (least_squares status
+        <= 0 or a failed evaluation) or the Jacobian at the best solution is singular (then no covariance).
+        Covariance: ``(J^T J)^-1`` in phi, multiplied by the reduced chi-square when that exceeds 1
+        (``covariance_scaled``), converted to SI by the delta method.
+
+    Raises
+    ------
+    ValueError
+        Nothing to estimate, too few frames or points, points off the patch, missing inputs.
+    """
+    if starts < 1:
+        raise ValueError(f"starts: at least 1 expected, got {starts}")
+    if max_evaluations is not None and max_evaluations < 1:
+        raise ValueError(f"max_evaluations: at least 1 expected, got {max_evaluations}")
+    cfg = model.config
+    space = cfg.parameter_space()
+    if space.dim == 0:
+        raise ValueError("estimation.estimate: empty; the fit needs at least one parameter to estimate")
+    prob = problem or FitProblem(model, meas, frames, points)
+    M = space.dim
+    dof = prob.dof - M
+    if dof <= 0:
+        raise ValueError(f"measurements: {3 * prob.n_obs} residuals leave no degrees of freedom for "
+                         f"{prob.n_points} point offsets and {M} parameters")
+    lo, up, inner_lo, inner_up = _fit_bounds(space)
+    theta_model = np.array(cfg.theta, float)
+    x_model = space.x_from_theta(theta_model)
+    x0s = _starts(x_model, cfg.prior_std_phi(), starts, rng, inner_lo, inner_up)
+
+    def fun(x):
+        r = prob.residuals(_theta_of(space, theta_model, x))
+        if not np.isfinite(r).all():
+            raise FloatingPointError(f"non-finite residuals at phi = {x}")
+        return r
+
+    results, records = [], []
+    for i, x0 in enumerate(x0s):
+        res, rec = _run_start(fun, x0, lo, up, max_evaluations)
+        rec["theta0"] = (theta_model if i == 0 else _theta_of(space, theta_model, x0)).tolist()
+        rec["theta"] = None if res is None else _theta_of(space, theta_model, res.x).tolist()
+        log.info("fit start %d: %s", i, rec)
+        results.append(res)
+        records.append({k: rec[k] for k in ("theta0", "theta", "cost", "status", "evaluations", "message")})
+    sizes = dict(frames=prob.frames, points=prob.n_points, observations=prob.n_obs, starts=tuple(records))
+    ok = [i for i, r in enumerate(results) if r is not None and r.status > 0]
+    if not ok:
+        reasons = "; ".join(f"start {i}: {r['message']}" for i, r in enumerate(records))
+        tried = [r for r in results if r is not None]
+        res = min(tried, key=lambda r: r.cost) if tried else None
+        x = x0s[0] if res is None else res.x
+        cost = float("nan") if res is None else float(res.cost)
+        return FitResult(_theta_of(space, theta_model, x), np.zeros(5), space.estimated, x, None, None, space.eps,
+                         cost, dof, 2 * cost / dof, False, 0 if res is None else int(res.njev or 0),
+                         0 if res is None else int(res.nfev), False, -99 if res is None else int(res.status),
+                         f"no start converged ({reasons})", **sizes)
+    res = min((results[i] for i in ok), key=lambda r: r.cost)
+    return _solution(space, theta_model, res, lo, up, dof, sizes)
+
+
+def _run_start(fun, x0, lo, up, max_evaluations):
+    """One bounded least_squares run from ``x0``: ``(OptimizeResult or None, record)``."""
+    from scipy.optimize import least_squares
+
+    try:
+        res = least_squares(fun, x0, jac="3-point", bounds=(lo, up), method="trf", x_scale="jac",
+                            max_nfev=max_evaluations)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
+        return None, {"cost": None, "status": -99, "evaluations": 0, "message": f"evaluation failed: {exc}"}
+    return res, {"cost": float(res.cost), "status": int(res.status), "evaluations": int(res.nfev),
+                 "message": str(res.message)}
+
+
+def _solution(space, theta_model, res, lo, up, dof, sizes) -> FitResult:
+    """Covariance, bounds and convergence flag of the winning least_squares run."""
+    theta = _theta_of(space, theta_model, res.x)
+    chi2_red = float(2 * res.cost / dof)
+    # the Jacobian at the solution: least_squares' own central differences in phi at the final x
+    cov_phi, reason = _covariance(np.asarray(res.jac, float), space.estimated)
+    # trf keeps its iterates strictly feasible: a parameter within 1e-4 of the box width of a bound is at it
+    tol = 1e-4 * (up - lo)
+    near = (res.active_mask != 0) | (res.x - lo < tol) | (up - res.x < tol)
+    at_bound = tuple(space.estimated[i] for i in np.flatnonzero(near))
+    scaled = chi2_red > 1.0 and cov_phi is not None
+    theta_std = np.zeros(5)
+    cov_theta = None
+    if cov_phi is not None:
+        if scaled:
+            cov_phi = cov_phi * chi2_red
+        cov_phi = 0.5 * (cov_phi + cov_phi.T)
+        jac = space.dtheta_dphi(space.to_phi(theta))[space.index]
+        cov_theta = cov_phi * np.outer(jac, jac)
+        theta_std[space.index] = np.sqrt(np.diag(cov_theta))
+    return FitResult(theta, theta_std, space.estimated, res.x, cov_phi, cov_theta, space.eps, float(res.cost), dof,
+                     chi2_red, scaled, int(res.njev or 0), int(res.nfev), reason is None, int(res.status),
+                     str(res.message) if reason is None else reason, at_bound=at_bound, **sizes)
+
+
+def tracking_prior(cfg, fitted: FitResult):
+    """Prior of the joint estimators started from a fit (``heartcv track --params``).
+
+    The fitted theta (all five) replaces the model file's values as the prior mean. The prior standard deviation
+    of each parameter the tracker estimates is the fit's, ``theta_std / (d theta / d phi)`` at the fitted theta in
+    the tracker's phi, when the fit estimated that parameter and has a covariance, unless the model file's prior
+    (``prior_std`` / ``prior_std_si``) is tighter; otherwise the model file's. Correlations of the fit are not
+    carried over (the joint prior is diagonal in phi).
+
+    Returns
+    -------
+    theta0 : ndarray (5,)
+    prior_std : ndarray (M,)          phi units, the tracker's ``estimation.estimate`` order
+    source : dict                     name -> 'fit' or 'model'
+    """
+    space = cfg.parameter_space()
+    model_sd = cfg.prior_std_phi()
+    theta0 = np.array(fitted.theta, float)
+    jac = space.dtheta_dphi(space.to_phi(theta0))
+    has_cov = fitted.cov_phi is not None or fitted.cov_theta is not None
+    sd = model_sd.copy()
+    source = {}
+    for j, name in enumerate(space.estimated):
+        i = NAMES.index(name)
+        fit_sd = fitted.theta_std[i] / jac[i] if (has_cov and name in fitted.estimated) else np.inf
+        if 0 < fit_sd < model_sd[j]:
+            sd[j] = fit_sd
+            source[name] = "fit"
+        else:
+            source[name] = "model"
+    return theta0, sd, source
