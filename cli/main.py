@@ -17,6 +17,7 @@ COMMANDS = {
     "render": "cli.render:render",
     "measure": "cli.measure:measure",
     "report": "cli.report:report",
+    "fit": "cli.fit:fit",
 }
 
 
@@ -40,7 +41,7 @@ def main(ctx, verbose, quiet):
     """heartcv: physics-based tracking of beating-heart surface motion.
 
     Available: `target`, `render`, `calibrate`, `measure`, `model info`, `model simulate`, `track` (kf, ge,
-    ukf, ekf), `report`, `simulate` (Monte-Carlo study of the estimators). Planned stage: fit. Logs go to stderr; --json summaries to stdout.
+    ukf, ekf), `fit`, `report`, `simulate` (Monte-Carlo study of the estimators). Logs go to stderr; --json summaries to stdout.
     """
     verbosity = verbose - quiet
     logging.basicConfig(level=max(10, 30 - 10 * verbosity), format="%(levelname)s %(name)s: %(message)s",
