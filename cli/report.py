@@ -8,12 +8,9 @@ Loading, the checks that the files belong together and the folder output live he
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
 from pathlib import Path
-import tempfile
 
 import click
 
@@ -66,7 +63,9 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
     for role, p in (("truth", truth_file), ("measurements", meas_file)):
         if p:
             metrics["inputs_hash"][role] = file_hash(p)
-    with _atomic_folder(out) as tmp:
+    from heartcv.io import atomic_folder
+
+    with atomic_folder(out) as tmp:
         figures = write_figures(tmp, runs, per, truth, noise, dpi, LEVEL)
         metrics["figures"] = [f for f, _ in figures]
         metrics["files"] = [f for f, _ in figures] + ["metrics.json", "summary.md", "index.html"]
@@ -233,32 +232,6 @@ def _check_output(out: Path) -> None:
         raise BadInput(f"{out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / "metrics.json").is_file():
         raise BadInput(f"{out}: a non-empty folder that is not a report (no metrics.json); not replaced")
-
-
-@contextlib.contextmanager
-def _atomic_folder(path: Path):
-    """Yield a hidden temporary folder beside ``path``; rename it to ``path`` only if the block succeeds (an
-    existing folder is replaced as a whole); on failure remove it."""
-    import shutil
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-    try:
-        yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)
-        old = None
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
-            os.rmdir(old)
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 # -- metrics.json ------------------------------------------------------------------------------------

@@ -709,20 +709,10 @@ def write_inputs_csv(path, columns, values, header=None) -> None:
 
 
 def read_inputs_csv(path) -> tuple[list, np.ndarray]:
-    """``(columns, values (K, n))`` of an ``inputs.csv`` (comment lines skipped)."""
-    path = Path(path)
-    try:
-        rows = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
-    except OSError as exc:
-        raise HeartcvIOError(path, f"cannot read inputs file ({exc.strerror})") from None
-    if not rows:
-        raise HeartcvIOError(path, "empty inputs file (a header row of column names expected)")
-    columns = [c.strip() for c in rows[0].split(",")]
-    try:
-        values = np.array([[float(v) for v in r.split(",")] for r in rows[1:]], float).reshape(-1, len(columns))
-    except ValueError as exc:
-        raise HeartcvIOError(path, f"not a numeric table with columns {columns}: {exc}") from None
-    return columns, values
+    """``(columns, values (K, n))`` of an ``inputs.csv`` (comment lines skipped; every column numeric)."""
+    cols, n = read_inputs_csv_columns(path)
+    columns = list(cols)
+    return columns, (np.stack([cols[c] for c in columns], axis=1) if columns else np.zeros((n, 0)))
 
 
 def write_render_truth(path, arrays: dict, meta: dict) -> None:
