@@ -68,7 +68,19 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
             fitted = read_parameters(params_file)
         except FileFormatError as exc:
             raise BadInput(str(exc)) from None
+        was_rig = meas.frame == "rig"
         meas = _apply_params_registration(meas, fitted, params_file, measurements)
+        if was_rig:
+            # measured references are birth-frame (deformed) positions: use the fit's undeformed offsets
+            from tracker.fit import undeformed_references
+
+            try:
+                meas = undeformed_references(m, meas, fitted.theta, fitted.frames)
+            except ValueError as exc:
+                raise BadInput(f"{measurements}: {exc}") from None
+            if meas.meta.get("dropped_points"):
+                log.info("%d points seen in fewer than two of the fit's %d frames were left out",
+                         len(meas.meta["dropped_points"]), fitted.frames)
         fitted_model = (fitted.meta.get("inputs_hash") or {}).get("model")
         if fitted_model is not None and fitted_model != file_hash(model_file):
             log.warning("%s was fitted with another model file than %s", params_file, model_file)

@@ -37,7 +37,7 @@ from .model import PatchModel
 from .params import NAMES, ParameterSpace
 from .tracking import ObservedPoints, frame_interval, locate_points
 
-__all__ = ["FitProblem", "FitResult", "fit", "tracking_prior", "S_LIMIT", "SINGULAR_RTOL"]
+__all__ = ["FitProblem", "FitResult", "fit", "tracking_prior", "undeformed_references", "S_LIMIT", "SINGULAR_RTOL"]
 
 log = logging.getLogger(__name__)
 
@@ -451,3 +451,30 @@ def tracking_prior(cfg, fitted: FitResult):
         else:
             source[name] = "model"
     return theta0, sd, source
+
+
+def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None) -> MeasurementSet:
+    """The measurement set with each point's ``reference`` replaced by its undeformed position at ``theta``.
+
+    A measured point's reference (``heartcv measure``) is its position in the frame it was born in, which is
+    already deformed by the load of that frame; the estimators take the reference as the undeformed offset of
+    the point, so a birth-frame reference is a constant error the state or the parameters would have to
+    explain (the GE then drives E to its bound). The undeformed positions are the per-point offsets that the
+    fit profiles out (:meth:`FitProblem.offsets`: generalised least squares of each point's measured minus
+    model displacement over the first ``frames`` frames). Points the fit cannot use (seen in fewer than two of
+    those frames, or off the patch) are dropped; ``meta['dropped_points']`` lists their ids.
+    """
+    import dataclasses
+
+    prob = FitProblem(model, meas, frames)
+    keep = prob.keep
+    offsets = prob.offsets(np.asarray(theta, float))
+    meta = dict(meas.meta)
+    if "reference_frame_index" in meta:
+        meta["reference_frame_index"] = [meta["reference_frame_index"][i] for i in keep]
+    meta["reference"] = f"undeformed: heartcv fit offsets over the first {prob.frames} frames"
+    meta["dropped_points"] = [int(i) for i in np.asarray(meas.point_ids)[prob.dropped]]
+    return dataclasses.replace(
+        meas, point_ids=meas.point_ids[keep], positions=meas.positions[:, keep],
+        covariances=meas.covariances[:, keep], reference=offsets, views=meas.views[:, keep],
+        reprojection_rms=meas.reprojection_rms[:, keep], meta=meta)

@@ -333,3 +333,28 @@ def test_covariance_matches_monte_carlo_all_five(sim_model):
     ratio = np.std(err, axis=0, ddof=1) / np.mean(sds, axis=0)
     assert np.all(np.abs(ratio - 1) < 3 / np.sqrt(2 * (n - 1))), ratio
     assert abs(np.mean(lr) - 5) < 3 * np.sqrt(10 / n), np.mean(lr)
+
+
+def test_undeformed_references_recover_the_true_offsets_from_birth_frame_references(paper_model):
+    """A measured point's reference is its (deformed) birth-frame position; undeformed_references replaces it by
+    the fit's profiled offset, which equals the true undeformed position to within the noise of a mean over the
+    frames (sigma / sqrt(K) per coordinate), while the birth-frame position is off by the static deformation."""
+    import dataclasses
+
+    from tracker.fit import undeformed_references
+
+    sim, meas = _noise_only(paper_model, 1.0, 11)
+    assert not np.any(meas.translation())                 # paper_patch: no respiration
+    # every point "born" at the frame of largest deformation, as a point re-detected in systole would be
+    k_peak = int(np.argmax(np.linalg.norm(meas.positions - meas.reference, axis=2).mean(axis=1)))
+    birth = dataclasses.replace(meas, reference=meas.positions[k_peak])
+    out = undeformed_references(paper_model, birth, paper_model.config.theta)
+    kept = np.isin(meas.point_ids, out.point_ids)      # a deformed reference may place a rim point off the patch
+    assert kept.sum() >= meas.n_points - 2
+    assert out.meta["dropped_points"] == [int(i) for i in meas.point_ids[~kept]]
+    sigma = np.sqrt(np.median(meas.covariances[0, :, 0, 0]))
+    err = np.abs(out.reference - meas.reference[kept])
+    bias = np.abs(birth.reference[kept] - meas.reference[kept])
+    K = meas.n_frames
+    assert err.max() < 5 * sigma / np.sqrt(K)
+    assert np.median(bias) > 3 * err.max()   # the birth-frame reference really is off: the test has power
