@@ -156,6 +156,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     meta = {"producer": "heartcv measure", "frame_rig": rig_file, "camera_names": names,
             "ref_camera": names[ref], "backend": be.name, "sigma_px": res.sigma_px,
             "sigma_estimated": res.sigma_estimated, "reference_frame_index": res.birth_frame.tolist(),
+            "reference_uv": [[float(v) for v in res.uv[b, p, ref]] for p, b in enumerate(res.birth_frame)],
             "frame_names": list(source.frame_names[:count]), "highpass_sigma": highpass,
             "inputs_hash": {"rig": file_hash(rig_file)} | ({"inputs": file_hash(inputs_path)}
                                                           if in_names else {}),

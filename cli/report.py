@@ -50,7 +50,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
     _check_sequences(runs, allow_mixed)
     first = next(iter(runs.values()))
     noise, noise_source = _measurement_noise(meas_file, runs, allow_mixed)
-    truth = _load_truth(truth_file, runs, allow_mixed) if truth_file else None
+    truth = _load_truth(truth_file, runs, allow_mixed, meas_file) if truth_file else None
     out = Path(output)
     _check_output(out)
 
@@ -165,7 +165,7 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
     return None, None
 
 
-def _load_truth(path, runs: dict, allow_mixed: bool) -> dict:
+def _load_truth(path, runs: dict, allow_mixed: bool, meas_file=None) -> dict:
     """{'kind', 'times', 'theta', 'positions': label -> (K, P, 3) where usable, 'notes'} of a truth file."""
     import numpy as np
 
@@ -199,11 +199,71 @@ def _load_truth(path, runs: dict, allow_mixed: bool) -> dict:
         truth.update(kind="render", times=data["times"], theta=data["theta"])
         for r in runs.values():
             _mismatch(r["est"].times, data["times"], r["path"], path, allow_mixed, "the truth")
-        truth["notes"].append("render truth: its point positions are in the world/rig frame and are other points "
-                              "than the tracked ones; the truth error needs the registration patch_from_rig, which "
-                              "the estimate files do not carry yet, so it is left out (truth_error_mean_m null)")
+        _render_truth_positions(truth, path, runs, meas_file)
         return truth
     raise BadInput(f"{path}: a truth file (format 'heartcv.truth' or 'heartcv.render_truth') expected, got {fmt!r}")
+
+
+def _render_truth_positions(truth, path, runs, meas_file):
+    """Patch-frame true trajectories of the estimates' points from a render truth: each point's material point
+    is the one its reference-camera pixel saw in its birth frame (the measurement file's ``reference_uv`` and
+    ``reference_frame_index``; heartcv/evaluate.py: true camera ray and mesh, barycentric motion), mapped from the
+    truth's world frame into the rig frame by the gauge fitted to the birth positions and into the patch frame
+    by the estimate's ``patch_from_rig``. Notes say why a run gets no truth positions."""
+    import numpy as np
+
+    def note(msg):
+        truth["notes"].append(msg)
+
+    if not meas_file:
+        note("render truth: --measurements (the rig-frame file of heartcv measure) is needed for the truth error")
+        return
+    from heartcv.evaluate import truth_errors
+    from heartcv.io import HeartcvIOError, read_render_truth
+    from tracker.io import FileFormatError, read_measurements
+
+    try:
+        meas = read_measurements(meas_file)
+        arrays, tmeta = read_render_truth(path)
+    except (FileFormatError, HeartcvIOError) as exc:
+        raise BadInput(str(exc)) from None
+    uv = meas.meta.get("reference_uv")
+    birth = meas.meta.get("reference_frame_index")
+    if meas.frame != "rig" or uv is None or birth is None:
+        note(f"render truth: {meas_file} is not a rig-frame file of heartcv measure with reference_uv; no truth "
+             "error")
+        return
+    K = arrays["vertex_positions"].shape[0]
+    if K < meas.n_frames:
+        note(f"render truth: {K} frames for {meas.n_frames} measured; no truth error")
+        return
+    arrays = dict(arrays, vertex_positions=arrays["vertex_positions"][:meas.n_frames])
+    names = list(tmeta.get("camera_names", []))
+    ref = names.index(meas.meta["ref_camera"]) if meas.meta.get("ref_camera") in names else 0
+    te = truth_errors(meas.positions, np.asarray(uv, float), np.asarray(birth, int), arrays, ref_camera=ref)
+    if te.truth_from_rig is None:
+        note("render truth: too few material points found; no truth error")
+        return
+    rig_from_truth = np.linalg.inv(te.truth_from_rig)
+    true_rig = te.true_positions @ rig_from_truth[:3, :3].T + rig_from_truth[:3, 3]       # (K, P_meas, 3)
+    col = {int(i): j for j, i in enumerate(meas.point_ids)}
+    for label, r in runs.items():
+        est = r["est"]
+        T = est.meta.get("patch_from_rig")
+        if T is None or est.times.size != meas.n_frames:
+            note(f"{label}: no patch_from_rig in the estimate file (or another sequence); no truth error")
+            continue
+        T = np.asarray(T, float)
+        idx = [col.get(int(i), -1) for i in est.point_ids]
+        pos = np.full((est.times.size, est.point_ids.size, 3), np.nan)
+        have = np.array([i >= 0 for i in idx])
+        if have.any():
+            pos[:, have] = true_rig[:, [i for i in idx if i >= 0]] @ T[:3, :3].T + T[:3, 3]
+        truth["positions"][label] = pos
+    R = te.truth_from_rig[:3, :3]
+    note(f"render truth: material points by the reference camera's ray at birth; gauge of the calibrated rig "
+         f"removed ({np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))):.3f} deg, "
+         f"{np.linalg.norm(te.truth_from_rig[:3, 3]) * 1e3:.3f} mm)")
 
 
 def _npz_format(path):

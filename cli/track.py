@@ -110,6 +110,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
 
         meta["params"] = str(params_file)
         meta["inputs_hash"]["params"] = file_hash(params_file)
+        if isinstance(meas.meta.get("registration"), dict):     # rig-frame file: where the patch frame lies
+            meta["patch_from_rig"] = meas.meta["registration"].get("patch_from_rig")
         if estimator != "kf":
             theta0, prior_std, source = tracking_prior(m.config, fitted)
             meta["prior_source"] = source

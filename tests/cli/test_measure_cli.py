@@ -108,6 +108,11 @@ def test_json_summary_keys_with_and_without_truth(case):
     assert mset.positions.shape[:1] == (FRAMES,)
     assert np.isfinite(mset.positions).all(axis=2).sum(axis=1).min() == s["points_min"]
     assert len(_read_csv(case["out"] / "meas.csv")) == np.isfinite(mset.positions).all(axis=2).sum()
+    # each point's reference-camera pixel at birth (for the exact truth comparison of heartcv report) and its
+    # birth frame: the reference position is the position in that frame
+    uv, birth = np.asarray(mset.meta["reference_uv"]), np.asarray(mset.meta["reference_frame_index"])
+    assert uv.shape == (mset.n_points, 2) and np.isfinite(uv).all()
+    np.testing.assert_array_equal(mset.reference, mset.positions[birth, np.arange(mset.n_points)])
 
     res = _measure(case, "--json")
     assert res.exit_code == 0, res.output

@@ -153,7 +153,7 @@ def test_partial_run_and_render_truth(run, caplog):
     assert g["prediction_error_rms_m"] == pytest.approx(part.prediction_rmse(), rel=1e-12)
     assert g["theta_final"]["E"] == pytest.approx(ge.theta[19, 3], rel=1e-12)
     assert doc["truth"]["kind"] == "render" and not doc["truth"]["positions"]
-    assert g["truth_error_mean_m"] is None and "patch_from_rig" in doc["truth"]["notes"][0]
+    assert g["truth_error_mean_m"] is None and "--measurements" in doc["truth"]["notes"][0]
     assert "truth_error.png" not in doc["figures"] and "parameter_E.png" in doc["figures"]
 
 
