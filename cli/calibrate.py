@@ -11,11 +11,11 @@ from pathlib import Path
 
 import click
 
+from heartcv.io import VIDEO_SUFFIXES  # one list of video suffixes for calibrate and measure
+
 from .options import BadInput, StageFailed, emit_json, json_opt, progress
 
 log = logging.getLogger(__name__)
-
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv", ".webm")
 
 
 def _positive_float(ctx, param, value):
