@@ -142,12 +142,31 @@ class FitProblem:
         m = np.einsum("pij,pj->pi", self._G_inv, b)
         return np.einsum("nij,nj->ni", self.L_inv, e - m[self._point_idx]).ravel()
 
-    def offsets(self, theta) -> np.ndarray:
-        """The profiled offsets ``m_p`` (P_used, 3): the estimated undeformed positions (patch frame, m)."""
-        e = self.y - self.displacements(theta)[self.seen]
+    def offsets(self, theta, relative_model_error: float = 0.0) -> np.ndarray:
+        """The profiled offsets ``m_p`` (P_used, 3): the estimated undeformed positions (patch frame, m).
+
+        ``relative_model_error`` gamma > 0 adds a model-error covariance ``gamma^2 |d_kp|^2 I`` to each
+        observation's ``R_kp`` (``d_kp`` the model displacement of the point in that frame), so that the offsets
+        rest on the frames where the model displaces the point least: a model whose displacements are off by a
+        fraction (a constant E where the truth's stiffness follows the cycle, a coarse mesh) then biases the
+        undeformed positions by that fraction of the *smallest* displacements instead of their weighted mean.
+        0 gives the fit's own offsets (the measurement covariances alone).
+        """
+        d = self.displacements(theta)[self.seen]
+        e = self.y - d
+        if relative_model_error > 0:
+            g2 = float(relative_model_error) ** 2 * np.einsum("ni,ni->n", d, d)
+            R = np.linalg.inv(self._R_inv) + g2[:, None, None] * np.eye(3)
+            W = np.linalg.inv(R)
+        elif relative_model_error == 0:
+            W = self._R_inv
+        else:
+            raise ValueError(f"relative_model_error must be >= 0, got {relative_model_error}")
         b = np.zeros((self.n_points, 3))
-        np.add.at(b, self._point_idx, np.einsum("nij,nj->ni", self._R_inv, e))
-        return np.einsum("pij,pj->pi", self._G_inv, b)
+        np.add.at(b, self._point_idx, np.einsum("nij,nj->ni", W, e))
+        G = np.zeros((self.n_points, 3, 3))
+        np.add.at(G, self._point_idx, W)
+        return np.linalg.solve(G, b[..., None])[..., 0]
 
     def chi2(self, theta) -> float:
         """``sum residuals^2`` (= 2 cost)."""
@@ -453,7 +472,12 @@ def tracking_prior(cfg, fitted: FitResult):
     return theta0, sd, source
 
 
-def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None) -> MeasurementSet:
+REFERENCE_MODEL_ERROR = 0.1
+"""Default relative model error of :func:`undeformed_references` (10 % of a point's model displacement)."""
+
+
+def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None,
+                          relative_model_error: float = REFERENCE_MODEL_ERROR) -> MeasurementSet:
     """The measurement set with each point's ``reference`` replaced by its undeformed position at ``theta``.
 
     A measured point's reference (``heartcv measure``) is its position in the frame it was born in, which is
@@ -461,18 +485,23 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
     the point, so a birth-frame reference is a constant error the state or the parameters would have to
     explain (the GE then drives E to its bound). The undeformed positions are the per-point offsets that the
     fit profiles out (:meth:`FitProblem.offsets`: generalised least squares of each point's measured minus
-    model displacement over the first ``frames`` frames). Points the fit cannot use (seen in fewer than two of
-    those frames, or off the patch) are dropped; ``meta['dropped_points']`` lists their ids.
+    model displacement over the first ``frames`` frames), here with a model-error term in the weights
+    (``relative_model_error``, :meth:`FitProblem.offsets`): the fitted theta is a constant that cannot follow a
+    stiffness that changes over the cycle, and with the plain weights its error at the large displacements of
+    systole would shift every undeformed position, which the GE then explains at rest by a drifting E. Points
+    the fit cannot use (seen in fewer than two of those frames, or off the patch) are dropped;
+    ``meta['dropped_points']`` lists their ids.
     """
     import dataclasses
 
     prob = FitProblem(model, meas, frames)
     keep = prob.keep
-    offsets = prob.offsets(np.asarray(theta, float))
+    offsets = prob.offsets(np.asarray(theta, float), relative_model_error)
     meta = dict(meas.meta)
     if "reference_frame_index" in meta:
         meta["reference_frame_index"] = [meta["reference_frame_index"][i] for i in keep]
-    meta["reference"] = f"undeformed: heartcv fit offsets over the first {prob.frames} frames"
+    meta["reference"] = (f"undeformed: heartcv fit offsets over the first {prob.frames} frames, relative model "
+                         f"error {relative_model_error:g}")
     meta["dropped_points"] = [int(i) for i in np.asarray(meas.point_ids)[prob.dropped]]
     return dataclasses.replace(
         meas, point_ids=meas.point_ids[keep], positions=meas.positions[:, keep],

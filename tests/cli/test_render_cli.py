@@ -155,6 +155,8 @@ def test_sample_scenes_are_valid(name):
     ph = build_phantom(cfg.geometry, scene.phantom)
     assert ph.trimesh().is_watertight
     assert scene.motion.stiffness_amplitude > 0
-    if name == "phantom":  # the coarse estimator model beside the scene has the same patch, fewer nodes
-        coarse = read_model(path.parent / "model.yaml")
-        assert replace(coarse.geometry, grid=cfg.geometry.grid) == cfg.geometry and coarse.reduction is None
+    if name == "phantom":  # the coarser estimator models beside the scene have the same patch, fewer nodes
+        for f in ("model.yaml", "model_paper.yaml"):
+            coarse = read_model(path.parent / f)
+            assert replace(coarse.geometry, grid=cfg.geometry.grid) == cfg.geometry
+            assert all(a < b for a, b in zip(coarse.geometry.grid, cfg.geometry.grid))
