@@ -140,9 +140,12 @@ def calibration(ctx, scene_file, output, seed, workers, views, as_json):
 @_WORKERS
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Render only the first N frames (default: all of motion.duration_s).")
+@click.option("--stiffness-cycle", "stiffness_cycle", type=click.FloatRange(0, 20), default=None,
+              help="Override motion.stiffness_cycle.amplitude (0: a constant stiffness, e.g. to check that "
+                   "heartcv fit recovers the truth's parameters).")
 @json_opt
 @click.pass_context
-def sequence(ctx, scene_file, output, seed, workers, frames, as_json):
+def sequence(ctx, scene_file, output, seed, workers, frames, stiffness_cycle, as_json):
     """Render the moving phantom: OUTPUT/cam0/000000.png ... per frame, inputs.csv (known inputs per frame),
     truth.npz (true parameters, mesh and vertex trajectories, camera truth, instrument masks), rig_truth.yaml."""
     import numpy as np
@@ -155,6 +158,10 @@ def sequence(ctx, scene_file, output, seed, workers, frames, as_json):
     from tracker.io import FileFormatError, read_model
 
     scene = _load_scene(scene_file, seed)
+    if stiffness_cycle is not None:
+        from dataclasses import replace
+
+        scene = replace(scene, motion=replace(scene.motion, stiffness_amplitude=float(stiffness_cycle)))
     _require_embree()
     model_path = scene_file_path(scene_file, scene.motion.model)
     try:

@@ -12,6 +12,7 @@ from cli.main import main
 from heartcv.io import list_image_folder, read_image, read_inputs_csv, read_render_truth, read_rig
 from tests.conftest import SAMPLES
 from tests.heartcv.render_scenes import scene_dict, write_truth_model
+from tracker.io import read_model
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +80,30 @@ def test_render_sequence(runner, tmp_path, model_file):
     mask = np.unpackbits(arrays["instrument_mask"], axis=-1)[..., :480].astype(bool)
     assert mask.shape == (4, 3, 270, 480) and not mask[:3].any() and mask[3].any()
     assert list(arrays["instrument_present"]) == [False, False, False, True]
+
+
+def test_render_sequence_stiffness_cycle_override(runner, tmp_path, model_file):
+    """--stiffness-cycle replaces the scene's amplitude: 0 gives the model file's constant E in every frame, a
+    positive value E (1 + a p / p_max) (the test scene's 'pressure' shape) with the inputs.csv pressure."""
+    scene = _scene(tmp_path, model_file)
+    E0 = read_model(model_file).theta[3]
+    for amp in (0.0, 2.0):
+        out = tmp_path / f"seq{amp}"
+        _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "6",
+                                   "--stiffness-cycle", str(amp), "--json"]))
+        arrays, meta = read_render_truth(out / "truth.npz")
+        assert meta["stiffness_cycle"]["amplitude"] == amp
+        p = arrays["inputs"][:, 0]
+        assert p.max() > 0
+        E = arrays["theta"][:, 3]
+        if amp == 0:
+            assert np.array_equal(E, np.full(6, E0))
+        else:
+            s = (E / E0 - 1) / amp                       # p / p_max, p_max over the whole cycle >= these frames'
+            assert np.allclose(s * p.max() / s.max(), p, rtol=1e-9) and 0 < s.max() <= 1 + 1e-12
+    result = runner.invoke(main, ["render", "sequence", scene, "-o", str(tmp_path / "bad"), "--stiffness-cycle",
+                                  "-1"])
+    assert result.exit_code == 2 and not (tmp_path / "bad").exists()
 
 
 def test_render_sequence_same_seed_same_images(runner, tmp_path, model_file):
