@@ -56,6 +56,15 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
 
     per = {label: tm.estimator_metrics(r["est"], truth["positions"].get(label) if truth else None, LEVEL)
            for label, r in runs.items()}
+    for label, r in runs.items():
+        pos = truth["positions"].get(label) if truth else None
+        # the measurements' own error against the truth, over the observations of the truth errors (seen, k >= 1)
+        per[label]["measurement_truth_error_mean_m"] = (
+            tm.pooled_stats(tm.measurement_truth_error_norms(r["est"], pos)[1:])["mean"] if pos is not None
+            else None)
+        if pos is not None and r["est"].filtered is None:
+            truth["notes"].append(f"{label}: the estimate file records no filtered positions (written before "
+                                  "heartcv track recorded them); truth error of the one-step predictions only")
     metrics = _metrics_document(runs, per, first["est"], noise, noise_source, truth, allow_mixed)
     metrics["inputs"] = {"estimates": {k: str(r["path"]) for k, r in runs.items()},
                          "truth": truth_file, "measurements": meas_file}
@@ -78,7 +87,11 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
     else:
         parts = [f"{k}: prediction error {mm(v['prediction_error_mean_m'])}"
                  + (f", truth error {mm(v['truth_error_mean_m'])}" if v["truth_error_mean_m"] is not None else "")
+                 + (f" (predictions {mm(v['prediction_truth_error_mean_m'])})"
+                    if v["prediction_truth_error_mean_m"] is not None else "")
                  for k, v in doc["estimators"].items()]
+        if doc["measurement_truth_error_mean_m"] is not None:
+            parts.append(f"measurements {mm(doc['measurement_truth_error_mean_m'])}")
         log.warning("wrote %s (%d figures); %s", output, len(figures), "; ".join(parts))
 
 
@@ -297,15 +310,17 @@ def _check_output(out: Path) -> None:
 # -- metrics.json ------------------------------------------------------------------------------------
 PER_ESTIMATOR_KEYS = (
     "completed_steps", "prediction_error_mean_m", "prediction_error_std_m", "prediction_error_rms_m",
-    "prediction_error_count", "truth_error_mean_m", "truth_error_std_m", "truth_error_rms_m", "nis_mean",
-    "nis_mean_dof", "nis_mean_band", "nis_in_band_fraction", "nis_steps", "theta_final", "theta_std_final",
-    "step_time_median_s", "step_time_p95_s", "truncation_events")
+    "prediction_error_count", "truth_error_mean_m", "truth_error_std_m", "truth_error_rms_m",
+    "prediction_truth_error_mean_m", "prediction_truth_error_std_m", "prediction_truth_error_rms_m",
+    "measurement_truth_error_mean_m", "nis_mean", "nis_mean_dof", "nis_mean_band", "nis_in_band_fraction",
+    "nis_steps", "theta_final", "theta_std_final", "step_time_median_s", "step_time_p95_s", "truncation_events")
 
 
 def _metrics_document(runs, per, first, noise, noise_source, truth, allow_mixed) -> dict:
     import numpy as np
 
     from tracker import __version__
+    from tracker.metrics import mean_noise_norm
     from tracker.params import NAMES
 
     t = np.asarray(first.times, float)
@@ -316,7 +331,7 @@ def _metrics_document(runs, per, first, noise, noise_source, truth, allow_mixed)
         d.update(estimator=est.estimator, file=str(r["path"]), steps=int(est.times.size), partial=not est.complete,
                  estimated=list(est.meta.get("estimated", [])))
         if truth is None or label not in truth["positions"]:
-            d.update(truth_error_mean_m=None, truth_error_std_m=None, truth_error_rms_m=None)
+            d.update(dict.fromkeys(k for k in PER_ESTIMATOR_KEYS if "truth_error" in k))
         c = est.completed_steps
         d["theta_truth_final"] = (dict(zip(NAMES, map(float, truth["theta"][c - 1])))
                                   if truth is not None and 0 < c <= len(truth["theta"]) else None)
@@ -326,6 +341,8 @@ def _metrics_document(runs, per, first, noise, noise_source, truth, allow_mixed)
         a, b = (estimators.get(k, {}).get(key) for k in ("ge", "kf"))
         return a / b if a is not None and b is not None and np.isfinite(a) and np.isfinite(b) and b > 0 else None
 
+    with_truth = [v for d in estimators.values()
+                  if (v := d["measurement_truth_error_mean_m"]) is not None and np.isfinite(v)]
     return {
         "format": REPORT_FORMAT[0], "format_version": REPORT_FORMAT[1], "heartcv_version": __version__,
         "producer": "heartcv report", "nis_level": LEVEL,
@@ -333,6 +350,8 @@ def _metrics_document(runs, per, first, noise, noise_source, truth, allow_mixed)
                      "dt_s": float(np.median(np.diff(t))) if t.size > 1 else None, "mixed": allow_mixed and
                      any(first is not r["est"] and _differs(first, r["est"]) for r in runs.values())},
         "measurement_noise_m": noise, "measurement_noise_source": noise_source,
+        "measurement_noise_norm_mean_m": mean_noise_norm(noise) if noise is not None else None,
+        "measurement_truth_error_mean_m": with_truth[0] if with_truth else None,
         "truth": {"kind": truth["kind"] if truth else None, "positions": bool(truth and truth["positions"]),
                   "notes": truth["notes"] if truth else []},
         "estimators": estimators,

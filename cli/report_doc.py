@@ -25,12 +25,13 @@ def _num(v, fmt="{:.4g}"):
 def _rows(doc) -> tuple[list, list]:
     """Header and rows of the per-estimator table (display units)."""
     head = ["estimator", "steps", "pred. error mean", "pred. error std", "pred. error RMS", "truth error mean",
-            "NIS mean / dof", "NIS in band", "step median", "step p95"]
+            "pred. truth error mean", "NIS mean / dof", "NIS in band", "step median", "step p95"]
     rows = []
     for label, e in doc["estimators"].items():
         steps = f"{e['completed_steps']}/{e['steps']}" + (" (partial)" if e["partial"] else "")
         rows.append([label, steps, mm(e["prediction_error_mean_m"]), mm(e["prediction_error_std_m"]),
                      mm(e["prediction_error_rms_m"]), mm(e["truth_error_mean_m"]),
+                     mm(e["prediction_truth_error_mean_m"]),
                      f"{_num(e['nis_mean'])} / {_num(e['nis_mean_dof'], '{:g}')}",
                      _num(e["nis_in_band_fraction"], "{:.0%}"),
                      _num(None if e["step_time_median_s"] is None else e["step_time_median_s"] * 1e3, "{:.3g} ms"),
@@ -53,17 +54,23 @@ def _facts(doc) -> list:
     facts = [f"Sequence: {s['frames']} frames over {s['duration_s']:.4g} s, {s['points']} points"
              + (" (mixed sequences: --allow-mixed)" if s["mixed"] else "") + "."]
     noise = doc["measurement_noise_m"]
-    facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']})."
+    facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']}); "
+                 f"its mean 3-D norm σ·√(8/π): {mm(doc['measurement_noise_norm_mean_m'])}."
                  if noise is not None else "Measurement noise: unknown (give --measurements).")
     for key, what in (("ratio_ge_to_kf_prediction_error", "prediction error"),
-                      ("ratio_ge_to_kf_truth_error", "truth error")):
+                      ("ratio_ge_to_kf_truth_error", "truth error (filtered)")):
         if doc[key] is not None:
             facts.append(f"GE / KF mean {what}: {doc[key]:.3f}.")
     tr = doc["truth"]
     facts.append(f"Truth: {tr['kind']} ({doc['inputs']['truth']})." if tr["kind"] else "Truth: none given.")
+    if doc["measurement_truth_error_mean_m"] is not None:
+        facts.append(f"Error of the measurements themselves against the truth: "
+                     f"{mm(doc['measurement_truth_error_mean_m'])} (mean over the observations, k ≥ 1).")
     facts += [f"Note: {n}" for n in tr["notes"]]
     facts.append("Errors are Euclidean norms per point; overall means over frames k ≥ 1 (frame 0 is predicted "
-                 "from the prior).")
+                 "from the prior). Truth error: of the filtered estimates (after each frame's update); pred. truth "
+                 "error: of the one-step predictions. Both over the points seen in each frame, the observations "
+                 "of the measurements' own error against the truth.")
     return facts
 
 

@@ -1,6 +1,6 @@
 """Figures of ``heartcv report`` (matplotlib, Agg; no pyplot state): prediction error per step (the paper's
 Fig. 4), parameter trajectories with ±2σ bands, NIS per degree of freedom with its χ² bands, error against
-ground truth, step times.
+ground truth (filtered estimates and one-step predictions), step times.
 
 Every function takes plain arrays keyed by a series label and returns a ``matplotlib.figure.Figure``; the
 house style (colours per estimator, legend below the axes, SI prefixes) is that of :mod:`cli.plots`.
@@ -21,6 +21,7 @@ __all__ = ["prediction_error_figure", "parameter_figure", "nis_figure", "truth_e
 MM = 1e3  # m -> mm
 _SIZE = (6.4, 4.0)
 _NOISE_STYLE = {"color": "0.35", "ls": ":", "lw": 1.3}
+_MEAS_STYLE = {"color": "0.15", "ls": (0, (6, 3)), "lw": 1.2}
 
 
 def series_name(label: str) -> str:
@@ -211,37 +212,57 @@ def nis_figure(series: dict, colors: dict, step_band, mean_band=None, level: flo
     return fig
 
 
-def truth_error_figure(series: dict, colors: dict, noise_sigma: float | None = None):
-    """Mean over the points of |ŷ − y_true| per step, with ±1 std band, per estimator.
+def truth_error_figure(series: dict, colors: dict, measurement_error: float | None = None,
+                       noise_norm: float | None = None):
+    """Error against the true positions per step and estimator, mean over the seen points with a ±1 std band:
+    the filtered estimates (top) and the one-step predictions (bottom), on one y scale.
 
     Parameters
     ----------
-    series : dict label -> (times (K,), mean (K,) m, var (K,) m^2, overall mean m)
-    noise_sigma : float, optional
-        Per-coordinate measurement noise σ (m): a dotted reference line.
+    series : dict label -> (times (K,), filtered (mean (K,) m, var (K,) m^2, overall mean m),
+                            predicted (mean, var, overall mean))
+        The overall means (steps k ≥ 1) are drawn dashed and quoted in the legend.
+    measurement_error : float, optional
+        Mean error of the measurements themselves against the truth (m): a long-dashed reference line.
+    noise_norm : float, optional
+        Mean norm of the measurement noise, σ·sqrt(8/π) (m): a dotted reference line.
     """
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    fig, (ax,) = _figure()
+    fig, (top, bottom) = _figure(2, size=(6.4, 5.6))
     handles = []
-    for i, (label, (t, mean, var, overall)) in enumerate(series.items()):
-        c = colors[label]
-        m, s = np.asarray(mean) * MM, np.sqrt(np.asarray(var)) * MM
-        ax.fill_between(t, np.maximum(m - s, 0), m + s, color=c, alpha=0.15, lw=0)
-        ax.plot(t, m, color=c, lw=1.6, marker="o", ms=2.5, zorder=_z(i))
-        if np.isfinite(overall):
-            _hline(ax, overall * MM, t, c)
-        handles.append(Line2D([], [], color=c, lw=1.6, marker="o", ms=2.5, label=_with_mean(label, overall)))
+    for i, (label, (t, filt, pred)) in enumerate(series.items()):
+        c, name = colors[label], series_name(label)
+        for ax, (mean, var, overall) in ((top, filt), (bottom, pred)):
+            m, s = np.asarray(mean) * MM, np.sqrt(np.asarray(var)) * MM
+            ax.fill_between(t, np.maximum(m - s, 0), m + s, color=c, alpha=0.15, lw=0)
+            ax.plot(t, m, color=c, lw=1.6, marker="o", ms=2.5, zorder=_z(i))
+            if np.isfinite(overall):
+                _hline(ax, overall * MM, t, c)
+        means = [f"{o * MM:#.3g} mm" if np.isfinite(o) else "–" for o in (filt[2], pred[2])]
+        handles.append(Line2D([], [], color=c, lw=1.6, marker="o", ms=2.5,
+                              label=f"{name} (mean, k ≥ 1: filtered {means[0]}, predicted {means[1]})"))
     handles.append(Patch(color="0.6", alpha=0.3, label="±1 std over the points"))
-    if noise_sigma is not None and np.isfinite(noise_sigma):
-        ax.axhline(noise_sigma * MM, **_NOISE_STYLE)
-        handles.append(Line2D([], [], **_NOISE_STYLE, label=f"measurement noise σ = {noise_sigma * MM:#.3g} mm"))
-    ax.set_ylabel(r"mean $|\hat{y} - y_{\mathrm{true}}|$ [mm]")
-    ax.set_ylim(bottom=0)
-    _style(ax, "time [s]")
-    _xlim(ax, [s[0] for s in series.values()])
-    _legend(fig, handles, ncol=2)
+    refs = [(measurement_error, _MEAS_STYLE, "the measurements' own error, mean {:#.3g} mm"),
+            (noise_norm, _NOISE_STYLE, "measurement noise mean norm σ·√(8/π) = {:#.3g} mm")]
+    refs = [(y, style, text.format(y * MM)) for y, style, text in refs if y is not None and np.isfinite(y)]
+    for y, style, text in refs:
+        for ax in (top, bottom):
+            ax.axhline(y * MM, **style)
+        handles.append(Line2D([], [], **style, label=text))
+    handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="overall mean"))
+    top.set_ylabel("filtered: mean\n" r"$|\hat{y}_{k|k} - y_{\mathrm{true}}|$ [mm]")
+    bottom.set_ylabel("predicted: mean\n" r"$|\hat{y}_{k|k-1} - y_{\mathrm{true}}|$ [mm]")
+    for ax in (top, bottom):
+        _style(ax)
+        ax.set_ylim(bottom=0)
+    hi = max(top.get_ylim()[1], bottom.get_ylim()[1])
+    for ax in (top, bottom):
+        ax.set_ylim(0, hi)
+    bottom.set_xlabel("time [s]")
+    _xlim(bottom, [s[0] for s in series.values()])
+    _legend(fig, handles, ncol=1)
     return fig
 
 
@@ -280,8 +301,9 @@ CAPTIONS = {
                             "the points seen, per estimator; dashed: the mean over frames k ≥ 1.",
     "nis.png": "Normalised innovation squared per degree of freedom with the 95 % χ² band of each frame (light) and "
                "of the time average (dark); dashed: each estimator's time average.",
-    "truth_error.png": "Error of the one-step predictions against the true point positions: mean over the points "
-                       "(±1 std shaded) per frame; dashed: the mean over frames k ≥ 1.",
+    "truth_error.png": "Error against the true point positions of the filtered estimates (top, after each frame's "
+                       "update) and of the one-step predictions (bottom): mean over the points seen (±1 std "
+                       "shaded) per frame; dashed: the mean over frames k ≥ 1.",
     "step_time.png": "Wall time per step (prediction and update); dashed: the median over steps k ≥ 1.",
 }
 
@@ -341,10 +363,18 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
              "nis.png", CAPTIONS["nis.png"] + (f" Bands of the {series_name(ref)} run." if len(with_nis) > 1
                                                else ""))
     if truth is not None and truth["positions"]:
-        save(truth_error_figure({k: (ps[k]["times"], ps[k]["truth_error_mean"], ps[k]["truth_error_var"],
-                                        per[k]["truth_error_mean_m"]) for k in truth["positions"]}, colors, noise),
+        labels = [k for k in runs if k in truth["positions"]]
+        meas_err = next((v for k in labels if (v := per[k].get("measurement_truth_error_mean_m")) is not None
+                         and np.isfinite(v)), None)
+        series = {k: (ps[k]["times"],
+                      (ps[k]["truth_error_mean"], ps[k]["truth_error_var"], per[k]["truth_error_mean_m"]),
+                      (ps[k]["prediction_truth_error_mean"], ps[k]["prediction_truth_error_var"],
+                       per[k]["prediction_truth_error_mean_m"])) for k in labels}
+        save(truth_error_figure(series, colors, meas_err, noise_norm),
              "truth_error.png", CAPTIONS["truth_error.png"]
-             + (" Dotted: the measurement noise σ per coordinate." if noise else ""))
+             + (" Long dashes: the mean error of the measurements themselves against the truth, over the same "
+                "observations." if meas_err is not None else "")
+             + (" Dotted: the mean norm of the measurement noise, σ·√(8/π)." if noise else ""))
     save(step_time_figure({k: (p["times"], p["step_time"], per[k]["step_time_median_s"],
                                   per[k]["step_time_p95_s"]) for k, p in ps.items()}, colors),
          "step_time.png", CAPTIONS["step_time.png"])

@@ -174,7 +174,7 @@ def read_measurements(path) -> MeasurementSet:
 # -- estimates ------------------------------------------------------------------------------------
 _EST_ARRAYS = ("times", "point_ids", "state_mean", "state_var", "theta", "theta_std", "predictions",
                "innovations", "nis", "nis_dof", "truncation_events", "step_time")
-_EST_OPTIONAL = ("phi_mean", "phi_cov")
+_EST_OPTIONAL = ("phi_mean", "phi_cov", "filtered")
 
 
 def write_estimates(path, e: EstimateSet, meta: dict | None = None):

@@ -8,7 +8,8 @@ kinematic state of the patch model. Per frame k (spec/estimator.md; the same cyc
 1. ``k > 0``: predict with the estimator's rule (GE §2, UKF or EKF §5), first-order-hold input ``u_{k-1}, u_k``;
    then truncate the parameter block to the box (§3; GE by default, optional for the baselines);
 2. record the one-step prediction of every point;
-3. update with the points seen in frame k (§4, shared with the KF), NaN rows dropped; truncate again.
+3. update with the points seen in frame k (§4, shared with the KF), NaN rows dropped; truncate again; record
+   the filtered (posterior) position of every point from the kinematic block of the truncated posterior.
 
 A non-finite state stops the run with :class:`tracker.tracking.EstimationDiverged`, whose ``partial`` holds the
 steps completed (``completed_steps < K``), so nothing downstream can mistake it for a complete run.
@@ -347,7 +348,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     -------
     EstimateSet
         With ``theta``/``theta_std`` per step (physical units, delta method from phi), ``phi_mean``/``phi_cov``
-        of the parameter block, NIS, one-step predictions and truncation events.
+        of the parameter block, NIS, one-step predictions, filtered positions and truncation events.
 
     Raises
     ------
@@ -382,6 +383,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     phi_mean = np.full((K, M), np.nan)
     phi_cov = np.full((K, M, M), np.nan)
     predictions = np.full((K, P_all, 3), np.nan)
+    filtered = np.full((K, P_all, 3), np.nan)
     innovations = np.full((K, P_all, 3), np.nan)
     nis = np.full(K, np.nan)
     dof = np.zeros(K, np.int64)
@@ -399,7 +401,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
                   "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
                   "counters": dict(counters, eig=filt.family.eig_count if filt.family else 0),
                   "modal_path": filt.modal},
-            phi_mean=phi_mean, phi_cov=phi_cov,
+            phi_mean=phi_mean, phi_cov=phi_cov, filtered=filtered,
         )
 
     state = prior.state
@@ -429,6 +431,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
             raise EstimationDiverged(k, result(k)) from None
         step_time[k] = time.perf_counter() - t0
         predictions[k, pts.keep] = pred_y.reshape(-1, 3)
+        filtered[k, pts.keep] = (offset + obs.H @ state.mean[M:]).reshape(-1, 3)
         innovations[k, pts.keep] = (y_all[k] - pred_y).reshape(-1, 3)
         state_mean[k] = state.mean[M:]
         state_var[k] = np.diag(state.cov)[M:]

@@ -168,6 +168,10 @@ class EstimateSet:
     meta : dict
     phi_mean : (K, M), optional           joint estimators: parameter block mean in phi coordinates
     phi_cov : (K, M, M), optional         its covariance (``meta['estimated']`` names the M parameters)
+    filtered : (K, P, 3), optional        filtered (posterior) position of every point after the update of
+                                          step k, ``offset + H @ state_mean[k]`` in the frame of ``predictions``
+                                          (NaN for dropped points and rows after ``completed_steps``; absent
+                                          from files written before it was recorded)
     """
 
     estimator: str
@@ -187,6 +191,7 @@ class EstimateSet:
     meta: dict = field(default_factory=dict)
     phi_mean: np.ndarray | None = None
     phi_cov: np.ndarray | None = None
+    filtered: np.ndarray | None = None
 
     def __post_init__(self):
         K = np.asarray(self.times).size
@@ -202,6 +207,8 @@ class EstimateSet:
             "predictions": (K, P, 3), "innovations": (K, P, 3), "nis": (K,), "nis_dof": (K,),
             "truncation_events": (K,), "step_time": (K,),
         }
+        if self.filtered is not None:
+            expect["filtered"] = (K, P, 3)
         for name, shape in expect.items():
             a = np.asarray(getattr(self, name))
             if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):

@@ -5,8 +5,13 @@ Pure functions on :class:`~tracker.measurements.EstimateSet` objects and arrays;
 to agree with the summary of ``heartcv track --json``:
 
 - only the completed steps ``0 … completed_steps − 1`` of a (partial) run are used;
-- overall prediction and truth errors use the steps k ≥ 1 (step 0 is the prediction from the prior, which
-  says more about the prior than about the tracker); the per-step curves cover every completed step;
+- overall errors use the steps k ≥ 1 (step 0 is the prediction from the prior, and its update the prior
+  corrected by one frame: both say more about the prior than about the tracker); the per-step curves cover
+  every completed step;
+- the truth error of the estimate is that of the filtered (posterior) positions ``EstimateSet.filtered``; that
+  of the one-step predictions is reported beside it. Both use only the observed (k, p) — the points seen at
+  step k, a finite innovation — so that the filtered estimates, the predictions and the measurements
+  themselves (:func:`measurement_truth_error_norms`) are compared over the same observations;
 - the prediction error of point p at step k is the Euclidean norm ``|y_kp − ŷ_kp|`` of the innovation
   (m), over the points seen at that step (the paper's Fig. 4 uses the same deviation per coordinate);
 - NIS statistics use every completed step with at least one point seen (step 0 included);
@@ -38,6 +43,7 @@ __all__ = [
     "measurement_noise_level",
     "mean_noise_norm",
     "truth_error_norms",
+    "measurement_truth_error_norms",
     "sequence_mismatch",
     "estimator_metrics",
 ]
@@ -194,14 +200,24 @@ def mean_noise_norm(sigma: float) -> float:
     return float(sigma * np.sqrt(8.0 / np.pi))
 
 
-def truth_error_norms(predictions, truth_positions) -> np.ndarray:
-    """|ŷ_kp − y_kp^true| (K, P) of predictions (K, P, 3) against true positions (K, P, 3), same frame (m)."""
-    p = np.asarray(predictions, float)
+def truth_error_norms(positions, truth_positions) -> np.ndarray:
+    """|ŷ_kp − y_kp^true| (K, P) of estimated positions (K, P, 3) (filtered or predicted) against true
+    positions (K, P, 3), same frame (m)."""
+    p = np.asarray(positions, float)
     t = np.asarray(truth_positions, float)
     if p.shape != t.shape or p.ndim != 3 or p.shape[-1] != 3:
-        raise ValueError(f"truth_error_norms: predictions and truth of one shape (K, P, 3) expected, got "
+        raise ValueError(f"truth_error_norms: estimates and truth of one shape (K, P, 3) expected, got "
                          f"{p.shape} and {t.shape}")
     return error_norms(p - t)
+
+
+def measurement_truth_error_norms(est: EstimateSet, truth_positions) -> np.ndarray:
+    """|y_kp − y_kp^true| (c, P) of the measurements themselves against the truth, over the completed steps
+    (NaN where not seen). The measured position is ``predictions + innovations`` (the innovation is the
+    measurement minus the prediction), in the frame of the estimate file, so the estimate file suffices."""
+    c = completed(est)
+    y = np.asarray(est.predictions, float)[:c] + np.asarray(est.innovations, float)[:c]
+    return truth_error_norms(y, np.asarray(truth_positions, float)[:c])
 
 
 def sequence_mismatch(a: EstimateSet, b: EstimateSet, rtol: float = 1e-9) -> str | None:
@@ -239,12 +255,16 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
     Returns
     -------
     dict with, in SI units: ``completed_steps``, ``prediction_error_mean_m`` / ``_std_m`` / ``_rms_m`` /
-    ``_count`` (steps k ≥ 1, seen points), ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (steps k ≥ 1,
-    points with a finite prediction; NaN without truth), ``nis_mean``, ``nis_mean_dof``, ``nis_mean_band``,
-    ``nis_in_band_fraction``, ``theta_final``, ``theta_std_final`` (dicts by parameter name, last completed
-    step; NaN if none), ``step_time_median_s``, ``step_time_p95_s``, ``truncation_events``, and the per-step
-    arrays under ``'per_step'``: ``times``, ``error_mean``, ``error_var``, ``error_count``, ``truth_error_mean``,
-    ``truth_error_var``, ``nis``, ``nis_dof``, ``nis_lo``, ``nis_hi``, ``theta``, ``theta_std``, ``step_time``.
+    ``_count`` (steps k ≥ 1, seen points), ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the filtered
+    positions ``est.filtered`` against the truth: steps k ≥ 1, seen points; NaN without truth or without
+    ``filtered`` in the file), ``prediction_truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the one-step
+    predictions against the truth, over the same (k, p); NaN without truth), ``nis_mean``,
+    ``nis_mean_dof``, ``nis_mean_band``, ``nis_in_band_fraction``, ``theta_final``, ``theta_std_final`` (dicts
+    by parameter name, last completed step; NaN if none), ``step_time_median_s``, ``step_time_p95_s``,
+    ``truncation_events``, and the per-step arrays under ``'per_step'``: ``times``, ``error_mean``,
+    ``error_var``, ``error_count``, ``truth_error_mean``, ``truth_error_var`` (filtered),
+    ``prediction_truth_error_mean``, ``prediction_truth_error_var``, ``nis``, ``nis_dof``, ``nis_lo``,
+    ``nis_hi``, ``theta``, ``theta_std``, ``step_time``.
     """
     c = completed(est)
     norms = error_norms(np.asarray(est.innovations)[:c])
@@ -257,13 +277,22 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
         "prediction_error_rms_m": pooled["rms"],
         "prediction_error_count": pooled["count"],
     }
-    t_mean = t_var = np.full(c, np.nan)
-    t_pool = {"mean": np.nan, "std": np.nan, "rms": np.nan}
+    none = {"mean": np.nan, "std": np.nan, "rms": np.nan}
+    f_mean = f_var = p_mean = p_var = np.full(c, np.nan)
+    f_pool = p_pool = none
     if truth_positions is not None:
-        tn = truth_error_norms(np.asarray(est.predictions)[:c], np.asarray(truth_positions, float)[:c])
-        t_mean, t_var, _ = per_step_stats(tn)
-        t_pool = pooled_stats(tn[1:])
-    out.update(truth_error_mean_m=t_pool["mean"], truth_error_std_m=t_pool["std"], truth_error_rms_m=t_pool["rms"])
+        truth = np.asarray(truth_positions, float)[:c]
+        seen = np.isfinite(norms)  # the observed (k, p): the measurements' own truth error covers the same
+        pn = np.where(seen, truth_error_norms(np.asarray(est.predictions, float)[:c], truth), np.nan)
+        p_mean, p_var, _ = per_step_stats(pn)
+        p_pool = pooled_stats(pn[1:])
+        if est.filtered is not None:
+            fn = np.where(seen, truth_error_norms(np.asarray(est.filtered, float)[:c], truth), np.nan)
+            f_mean, f_var, _ = per_step_stats(fn)
+            f_pool = pooled_stats(fn[1:])
+    out.update(truth_error_mean_m=f_pool["mean"], truth_error_std_m=f_pool["std"], truth_error_rms_m=f_pool["rms"],
+               prediction_truth_error_mean_m=p_pool["mean"], prediction_truth_error_std_m=p_pool["std"],
+               prediction_truth_error_rms_m=p_pool["rms"])
     nis = np.asarray(est.nis, float)[:c]
     dof = np.asarray(est.nis_dof)[:c]
     ns = nis_statistics(nis, dof, level)
@@ -279,7 +308,8 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
     lo, hi = nis_step_band(dof, level)
     out["per_step"] = {
         "times": np.asarray(est.times, float)[:c], "error_mean": mean, "error_var": var, "error_count": count,
-        "truth_error_mean": t_mean, "truth_error_var": t_var, "nis": nis, "nis_dof": dof, "nis_lo": lo,
-        "nis_hi": hi, "theta": theta, "theta_std": theta_std, "step_time": np.asarray(est.step_time, float)[:c],
+        "truth_error_mean": f_mean, "truth_error_var": f_var, "prediction_truth_error_mean": p_mean,
+        "prediction_truth_error_var": p_var, "nis": nis, "nis_dof": dof, "nis_lo": lo, "nis_hi": hi,
+        "theta": theta, "theta_std": theta_std, "step_time": np.asarray(est.step_time, float)[:c],
     }
     return out

@@ -1,7 +1,8 @@
 """Run an estimator over a measurement set with the patch model (the KF here; GE/UKF/EKF in their modules).
 
 The cycle per frame k: predict ``x_k = A x_{k-1} + B0 u_{k-1} + B1 u_k`` (first-order hold), record the
-one-step prediction of every point, update with the points seen in frame k (NaN rows dropped).
+one-step prediction of every point, update with the points seen in frame k (NaN rows dropped) and record the
+filtered (posterior) position of every point.
 Frame 0 updates the prior (static equilibrium under ``u_0`` with the configured initial covariance).
 """
 
@@ -128,6 +129,7 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
     state_mean = np.full((K, n), np.nan)
     state_var = np.full((K, n), np.nan)
     predictions = np.full((K, P_all, 3), np.nan)
+    filtered = np.full((K, P_all, 3), np.nan)
     innovations = np.full((K, P_all, 3), np.nan)
     nis = np.full(K, np.nan)
     dof = np.zeros(K, np.int64)
@@ -146,6 +148,7 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
         if not np.isfinite(state.mean).all():
             raise EstimationDiverged(k)
         predictions[k, pts.keep] = pred_y.reshape(-1, 3)
+        filtered[k, pts.keep] = (offset + H @ state.mean).reshape(-1, 3)
         innovations[k, pts.keep] = (y_all[k] - pred_y).reshape(-1, 3)
         state_mean[k] = state.mean
         state_var[k] = np.diag(state.cov)
@@ -156,5 +159,5 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
     return EstimateSet(
         "kf", meas.times, meas.point_ids, state_mean, state_var, theta_k, np.zeros((K, 5)), predictions,
         innovations, nis, dof, np.zeros(K, np.int64), step_time, completed,
-        meta={"dropped_points": pts.dropped.tolist(), "joseph": joseph, "dt": dt},
+        meta={"dropped_points": pts.dropped.tolist(), "joseph": joseph, "dt": dt}, filtered=filtered,
     )

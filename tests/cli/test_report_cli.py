@@ -16,8 +16,9 @@ from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
 PER_ESTIMATOR = {"prediction_error_mean_m", "prediction_error_std_m", "prediction_error_rms_m", "truth_error_mean_m",
-                 "nis_mean", "nis_mean_dof", "nis_in_band_fraction", "theta_final", "theta_std_final",
-                 "step_time_median_s", "step_time_p95_s", "completed_steps"}
+                 "prediction_truth_error_mean_m", "measurement_truth_error_mean_m", "nis_mean", "nis_mean_dof",
+                 "nis_in_band_fraction", "theta_final", "theta_std_final", "step_time_median_s", "step_time_p95_s",
+                 "completed_steps"}
 
 
 def _ok(cmd, args):
@@ -80,8 +81,16 @@ def test_end_to_end(run):
         assert e["prediction_error_rms_m"] == pytest.approx(est.prediction_rmse(), rel=1e-12)
         d = np.linalg.norm(est.innovations[1:], axis=-1)
         assert e["prediction_error_mean_m"] == pytest.approx(d.mean(), rel=1e-12)
-        t = np.linalg.norm(est.predictions[1:] - truth["positions"][1:], axis=-1)
+        # truth errors over k >= 1 (every point is seen in this file): the filtered estimates, the one-step
+        # predictions and the measurements themselves (from the measurement file, not the estimates)
+        t = np.linalg.norm(est.filtered[1:] - truth["positions"][1:], axis=-1)
         assert e["truth_error_mean_m"] == pytest.approx(t.mean(), rel=1e-12)
+        assert e["truth_error_rms_m"] == pytest.approx(np.sqrt(np.mean(t**2)), rel=1e-12)
+        tp = np.linalg.norm(est.predictions[1:] - truth["positions"][1:], axis=-1)
+        assert e["prediction_truth_error_mean_m"] == pytest.approx(tp.mean(), rel=1e-12)
+        assert e["prediction_truth_error_std_m"] == pytest.approx(tp.std(), rel=1e-12)
+        ty = np.linalg.norm(meas.positions[1:] - truth["positions"][1:], axis=-1)
+        assert e["measurement_truth_error_mean_m"] == pytest.approx(ty.mean(), rel=1e-12)
         assert e["nis_mean"] == pytest.approx(np.mean(est.nis), rel=1e-12) and e["nis_mean_dof"] == 42
         assert e["theta_final"]["E"] == pytest.approx(est.theta[-1, 3], rel=1e-12)
         assert e["step_time_median_s"] == pytest.approx(np.median(est.step_time[1:]), rel=1e-12)
@@ -89,9 +98,18 @@ def test_end_to_end(run):
         # plausible: the measurement noise (0.1 mm) dominates the prediction error, the truth error lies below
         # it, and the paper's model is consistent (both estimators run with the true parameters)
         assert 1e-4 < e["prediction_error_mean_m"] < 3e-4
-        assert e["truth_error_mean_m"] < e["prediction_error_mean_m"]
+        assert e["truth_error_mean_m"] < e["prediction_truth_error_mean_m"] < e["prediction_error_mean_m"]
+        assert e["prediction_truth_error_mean_m"] < 0.3 * e["measurement_truth_error_mean_m"]
         assert e["truth_error_mean_m"] < doc["measurement_noise_m"]
         assert 0.7 < e["nis_mean"] / e["nis_mean_dof"] < 1.3
+    assert doc["measurement_truth_error_mean_m"] == doc["estimators"]["ge"]["measurement_truth_error_mean_m"]
+    assert doc["measurement_noise_norm_mean_m"] == pytest.approx(1e-4 * np.sqrt(8 / np.pi), rel=1e-12)
+    # the measurements' own truth error is the noise: 434 norms of N(0, sigma^2 I3), mean sigma sqrt(8/pi)
+    assert doc["measurement_truth_error_mean_m"] == pytest.approx(doc["measurement_noise_norm_mean_m"], rel=0.05)
+    assert doc["ratio_ge_to_kf_truth_error"] == pytest.approx(
+        doc["estimators"]["ge"]["truth_error_mean_m"] / doc["estimators"]["kf"]["truth_error_mean_m"])
+    assert "pred. truth error mean" in md and "measurements themselves against the truth" in md
+    assert "σ·√(8/π)" in html
     assert doc["estimators"]["ge"]["estimated"] == ["E", "nu"]
     assert doc["estimators"]["ge"]["theta_std_final"]["E"] > 0 == doc["estimators"]["kf"]["theta_std_final"]["E"]
     assert doc["ratio_ge_to_kf_prediction_error"] == pytest.approx(
@@ -106,6 +124,9 @@ def test_end_to_end(run):
     doc = json.loads((out / "metrics.json").read_text())
     assert not (out / "stale.txt").exists() and not (out / "truth_error.png").exists()
     assert doc["measurement_noise_m"] is None and doc["estimators"]["kf"]["truth_error_mean_m"] is None
+    assert doc["estimators"]["kf"]["prediction_truth_error_mean_m"] is None
+    assert doc["estimators"]["kf"]["measurement_truth_error_mean_m"] is None
+    assert doc["measurement_truth_error_mean_m"] is None and doc["measurement_noise_norm_mean_m"] is None
     assert doc["ratio_ge_to_kf_prediction_error"] is None and "parameter_E.png" not in doc["figures"]
 
 
@@ -134,7 +155,8 @@ def test_partial_run_and_render_truth(run, caplog):
     ge = read_estimates(run / "ge.npz")
     nan_rows = lambda a: np.concatenate([a[:20], np.full_like(a[20:], np.nan)])  # noqa: E731
     part = replace(ge, completed_steps=20, theta=nan_rows(ge.theta), theta_std=nan_rows(ge.theta_std),
-                   predictions=nan_rows(ge.predictions), innovations=nan_rows(ge.innovations), nis=nan_rows(ge.nis),
+                   predictions=nan_rows(ge.predictions), filtered=nan_rows(ge.filtered),
+                   innovations=nan_rows(ge.innovations), nis=nan_rows(ge.nis),
                    nis_dof=np.where(np.arange(31) < 20, ge.nis_dof, 0),
                    step_time=np.where(np.arange(31) < 20, ge.step_time, 0.0))
     write_estimates(run / "ge.partial.npz", part, {"partial": True})
@@ -155,6 +177,29 @@ def test_partial_run_and_render_truth(run, caplog):
     assert doc["truth"]["kind"] == "render" and not doc["truth"]["positions"]
     assert g["truth_error_mean_m"] is None and "--measurements" in doc["truth"]["notes"][0]
     assert "truth_error.png" not in doc["figures"] and "parameter_E.png" in doc["figures"]
+
+
+def test_estimate_file_without_filtered_positions(run):
+    """A file written before heartcv track recorded the filtered positions: its truth error is null (with a note),
+    the one-step predictions' truth error is still reported."""
+    from dataclasses import replace
+
+    from tracker.io import read_estimates, read_truth, write_estimates
+
+    kf = read_estimates(run / "kf.npz")
+    write_estimates(run / "kf_old.npz", replace(kf, filtered=None))
+    res = _report([run / "kf_old.npz", "--truth", run / "t.npz", "-o", run / "rep_old", "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    e = doc["estimators"]["kf"]
+    truth, _ = read_truth(run / "t.npz")
+    assert e["truth_error_mean_m"] is None and e["truth_error_rms_m"] is None
+    tp = np.linalg.norm(kf.predictions[1:] - truth["positions"][1:], axis=-1)
+    assert e["prediction_truth_error_mean_m"] == pytest.approx(tp.mean(), rel=1e-12)
+    ty = np.linalg.norm(kf.predictions[1:] + kf.innovations[1:] - truth["positions"][1:], axis=-1)
+    assert e["measurement_truth_error_mean_m"] == pytest.approx(ty.mean(), rel=1e-12)
+    assert any("no filtered positions" in n for n in doc["truth"]["notes"])
+    assert "truth_error.png" in doc["figures"]
 
 
 def test_bad_input(run):

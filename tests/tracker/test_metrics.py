@@ -12,8 +12,8 @@ from tracker.params import NAMES
 NAN = np.nan
 
 
-def _est(innovations, *, predictions=None, nis=None, dof=None, step_time=None, theta=None, theta_std=None,
-         completed=None, times=None, point_ids=None, meta=None, estimator="kf"):
+def _est(innovations, *, predictions=None, filtered=None, nis=None, dof=None, step_time=None, theta=None,
+         theta_std=None, completed=None, times=None, point_ids=None, meta=None, estimator="kf"):
     e = np.asarray(innovations, float)
     K, P = e.shape[:2]
     return EstimateSet(
@@ -25,7 +25,7 @@ def _est(innovations, *, predictions=None, nis=None, dof=None, step_time=None, t
         np.full(K, 42.0) if nis is None else np.asarray(nis, float),
         np.full(K, 42) if dof is None else np.asarray(dof), np.zeros(K, np.int64),
         np.full(K, 1e-3) if step_time is None else np.asarray(step_time, float),
-        K if completed is None else completed, meta or {})
+        K if completed is None else completed, meta or {}, filtered=filtered)
 
 
 # three steps, two points; norms 5/NaN, 3/4 (hand: 3-4-0 and 0-0-3, 0-4-0 ...), 1/1
@@ -60,32 +60,66 @@ def test_estimator_metrics_prediction_error_exact():
     assert m["prediction_error_rms_m"] == pytest.approx(est.prediction_rmse(), rel=1e-14)
     assert m["prediction_error_count"] == 4 and m["completed_steps"] == 3
     assert np.isnan(m["truth_error_mean_m"]) and np.isnan(m["per_step"]["truth_error_mean"]).all()
+    assert np.isnan(m["prediction_truth_error_mean_m"]) and np.isnan(m["per_step"]["prediction_truth_error_mean"]).all()
     np.testing.assert_allclose(m["per_step"]["error_mean"], np.array([5, 3.5, 1]) * 1e-4, rtol=1e-15)
     assert m["theta_final"] == dict(zip(NAMES, [1050.0, 2.39, 0.003, 1.5e5, 0.45]))
     assert m["theta_std_final"] == dict.fromkeys(NAMES, 0.0)
 
 
 def test_truth_errors_exact():
+    """Filtered and predicted positions against the truth over the seen (k, p) of E1 (step 0: point 1 unseen),
+    overall over k >= 1; the measurements (prediction + innovation) over the same observations."""
     truth = np.zeros((3, 2, 3))
     pred = np.zeros((3, 2, 3))
     pred[0] = [[9.0, 0, 0], [0, 0, 0]]          # step 0 is left out of the overall numbers
     pred[1] = [[0, 3.0, 4.0], [0, 0, 2.0]]      # norms 5, 2
     pred[2] = [[0, 0, 0], [6.0, 8.0, 0]]        # norms 0, 10
+    filt = np.zeros((3, 2, 3))
+    filt[0] = [[0, 0, 1.0], [0, 7.0, 0]]        # norms 1, (7: point 1 unseen at step 0)
+    filt[1] = [[2.0, 0, 0], [0, 0, 0]]          # norms 2, 0
+    filt[2] = [[0, 0, 3.0], [0, 4.0, 0]]        # norms 3, 4
     truth[:] = [1.0, 2.0, 3.0]                  # a common offset: errors are differences
     pred = (pred + truth) * 1e-3
+    filt = (filt + truth) * 1e-3
     truth = truth * 1e-3
     np.testing.assert_allclose(tm.truth_error_norms(pred, truth), np.array([[9, 0], [5, 2], [0, 10]]) * 1e-3,
                                rtol=1e-12, atol=1e-18)
+    est = _est(E1, predictions=pred, filtered=filt)
+    m = tm.estimator_metrics(est, truth)
+    # filtered, k >= 1: norms 2, 0, 3, 4
+    assert m["truth_error_mean_m"] == pytest.approx(9 / 4 * 1e-3, rel=1e-12)
+    assert m["truth_error_rms_m"] == pytest.approx(np.sqrt(29 / 4) * 1e-3, rel=1e-12)
+    assert m["truth_error_std_m"] == pytest.approx(np.sqrt((0.25**2 + 2.25**2 + 0.75**2 + 1.75**2) / 4) * 1e-3,
+                                                   rel=1e-12)
+    np.testing.assert_allclose(m["per_step"]["truth_error_mean"], np.array([1, 1, 3.5]) * 1e-3, rtol=1e-12)
+    np.testing.assert_allclose(m["per_step"]["truth_error_var"], np.array([0, 1, 0.25]) * 1e-6, rtol=1e-10,
+                               atol=1e-20)
+    # predicted, k >= 1: norms 5, 2, 0, 10; step 0 only point 0 (seen)
+    assert m["prediction_truth_error_mean_m"] == pytest.approx(17 / 4 * 1e-3, rel=1e-12)
+    assert m["prediction_truth_error_rms_m"] == pytest.approx(np.sqrt(129 / 4) * 1e-3, rel=1e-12)
+    np.testing.assert_allclose(m["per_step"]["prediction_truth_error_mean"], np.array([9, 3.5, 5]) * 1e-3,
+                               rtol=1e-12)
+    np.testing.assert_allclose(m["per_step"]["prediction_truth_error_var"], np.array([0, 2.25, 25]) * 1e-6,
+                               rtol=1e-10, atol=1e-20)
+    # the measurements: prediction + innovation against the truth, NaN where not seen
+    meas = pred + E1
+    np.testing.assert_allclose(tm.measurement_truth_error_norms(est, truth),
+                               np.linalg.norm(meas - truth, axis=-1), rtol=1e-12)
+    assert np.isnan(tm.measurement_truth_error_norms(est, truth)[0, 1])
+    # an unseen point is left out, however good its estimate
+    e = E1.copy()
+    e[1, 1] = NAN
+    m = tm.estimator_metrics(_est(e, predictions=pred, filtered=filt), truth)
+    assert m["truth_error_mean_m"] == pytest.approx(9 / 3 * 1e-3, rel=1e-12)
+    assert m["prediction_truth_error_mean_m"] == pytest.approx(15 / 3 * 1e-3, rel=1e-12)
+    # no filtered positions in the file (written before they were recorded): no truth error of the estimate
     m = tm.estimator_metrics(_est(E1, predictions=pred), truth)
-    assert m["truth_error_mean_m"] == pytest.approx(17 / 4 * 1e-3, rel=1e-12)
-    assert m["truth_error_rms_m"] == pytest.approx(np.sqrt(129 / 4) * 1e-3, rel=1e-12)
-    np.testing.assert_allclose(m["per_step"]["truth_error_mean"], np.array([4.5, 3.5, 5]) * 1e-3, rtol=1e-12)
-    np.testing.assert_allclose(m["per_step"]["truth_error_var"], np.array([20.25, 2.25, 25]) * 1e-6, rtol=1e-10)
-    pred[1, 1] = NAN  # a dropped point has no prediction: left out
-    m = tm.estimator_metrics(_est(E1, predictions=pred), truth)
-    assert m["truth_error_mean_m"] == pytest.approx(15 / 3 * 1e-3, rel=1e-12)
+    assert np.isnan(m["truth_error_mean_m"]) and np.isnan(m["per_step"]["truth_error_mean"]).all()
+    assert m["prediction_truth_error_mean_m"] == pytest.approx(17 / 4 * 1e-3, rel=1e-12)
     with pytest.raises(ValueError, match="one shape"):
         tm.truth_error_norms(pred[:2], truth)
+    with pytest.raises(ValueError, match="filtered"):
+        _est(E1, filtered=filt[:2])
 
 
 def test_nis_bands_against_scipy():
