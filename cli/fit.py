@@ -132,6 +132,7 @@ def _summary(result, output) -> dict:
         "cost": result.cost,
         "reduced_chi2": result.reduced_chi2,
         "covariance_scaled": result.covariance_scaled,
+        "covariance_kind": result.covariance_kind,
         "dof": result.dof,
         "converged": result.converged,
         "message": result.message,

@@ -265,6 +265,7 @@ def parameters_to_dict(result, meta: dict | None = None) -> dict:
             "theta": None if result.cov_theta is None else result.cov_theta,
             "phi": None if result.cov_phi is None else result.cov_phi,
             "scaled": bool(result.covariance_scaled),
+            "kind": str(result.covariance_kind),
         },
         "cost": float(result.cost),
         "dof": int(result.dof),
@@ -365,8 +366,11 @@ def parameters_from_dict(d, path="<parameters>"):
                          np.log(theta[3]), s_from_nu(theta[4])])
         phi = full[[NAMES.index(n) for n in est]]
     cov = d.get("covariance") or {}
-    if not isinstance(cov, dict) or set(cov) - {"theta", "phi", "scaled"}:
-        raise bad("covariance", f"a mapping {{theta, phi, scaled}} expected, got {cov!r}")
+    if not isinstance(cov, dict) or set(cov) - {"theta", "phi", "scaled", "kind"}:
+        raise bad("covariance", f"a mapping {{theta, phi, scaled, kind}} expected, got {cov!r}")
+    kind = cov.get("kind", "model")
+    if kind not in ("model", "cluster-robust"):
+        raise bad("covariance.kind", f"'model' or 'cluster-robust' expected, got {kind!r}")
     cov_theta = matrix(cov.get("theta"), "covariance.theta", M)
     cov_phi = matrix(cov.get("phi"), "covariance.phi", M)
     scaled = cov.get("scaled", False)
@@ -408,7 +412,7 @@ def parameters_from_dict(d, path="<parameters>"):
             scaled,
             opt("iterations", int, 0), opt("evaluations", int, 0), opt("converged", bool, True),
             opt("status", int, 0), opt("message", str, ""), opt("frames", int, 0), opt("points", int, 0),
-            opt("observations", int, 0), tuple(starts), tuple(at_bound), reg, meta,
+            opt("observations", int, 0), tuple(starts), tuple(at_bound), reg, meta, covariance_kind=kind,
         )
     except ValueError as exc:
         raise FileFormatError(path, str(exc)) from None

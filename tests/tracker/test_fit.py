@@ -386,3 +386,46 @@ def test_reference_offsets_with_a_model_error_rest_on_the_least_deformed_frames(
     assert np.all(weighted < 0.3 * smallest + 6 * sigma)             # (1 - 1/1.3) = 0.23 of the smallest displacement
     with pytest.raises(ValueError, match="relative_model_error"):
         prob.offsets(theta, -0.1)
+
+
+def test_cluster_robust_covariance_covers_errors_correlated_along_a_track():
+    """35 points whose measurement errors are AR(1) in time (rho = 0.95, as a matching bias that drifts with the
+    track) while the file claims independent noise: over 24 seeds the spread of the fitted E and nu matches the
+    cluster-robust standard deviation the fit reports (>= ROBUST_MIN_POINTS points), and is about twice the
+    model covariance (J^T J)^-1 (scaled by the reduced chi-square), which assumes independent residuals."""
+    from tracker.fit import ROBUST_MIN_POINTS
+
+    model = _model("paper_patch.yaml", observation__points={"grid": [7, 5]}, observation__margin=0.1)
+    est, sd_robust, sd_model = [], [], []
+    for seed in range(24):
+        sim, meas = _noise_only(model, 1.0, 100 + seed)
+        rng = np.random.default_rng(seed)
+        K, P = sim.positions.shape[:2]
+        assert P >= ROBUST_MIN_POINTS
+        e = np.zeros((K, P, 3))
+        e[0] = rng.normal(0, 1, (P, 3))
+        for k in range(1, K):
+            e[k] = 0.95 * e[k - 1] + np.sqrt(1 - 0.95 ** 2) * rng.normal(0, 1, (P, 3))
+        meas = _with_positions(meas, sim.positions + sim.measurement_std * e)
+        res = fit(model, meas)
+        assert res.converged and res.covariance_kind == "cluster-robust"
+        prob = FitProblem(model, meas)
+        est.append(res.theta[3:5])
+        sd_robust.append(res.theta_std[3:5])
+        # the model covariance of the same solution: chi-square-scaled (J^T J)^-1, J by central differences in SI
+        h = 1e-6 * res.theta[3:5]
+        J = np.stack([(prob.residuals(_shift(res.theta, i, h[j])) - prob.residuals(_shift(res.theta, i, -h[j])))
+                      / (2 * h[j]) for j, i in enumerate((3, 4))], axis=1)
+        C = np.linalg.inv(J.T @ J) * max(res.reduced_chi2, 1.0)
+        sd_model.append(np.sqrt(np.diag(C)))
+    spread = np.std(est, axis=0, ddof=1)
+    ratio_robust = spread / np.mean(sd_robust, axis=0)
+    ratio_model = spread / np.mean(sd_model, axis=0)
+    assert np.all((ratio_robust > 0.6) & (ratio_robust < 1.4)), ratio_robust  # measured: 1.27, 1.11
+    assert np.all(ratio_model > 1.6), ratio_model         # measured: 2.26 (E), 1.97 (nu)
+
+
+def _shift(theta, i, step):
+    t = np.array(theta, float)
+    t[i] += step
+    return t
