@@ -1,4 +1,4 @@
-"""``python -m benchmarks {model,discretise,kf,estimators,render,measure,all} [--json PATH] [--quick]``."""
+"""``python -m benchmarks {model,discretise,kf,estimators,fit,render,measure,all} [--json PATH] [--quick]``."""
 
 from __future__ import annotations
 
@@ -11,13 +11,14 @@ import time
 
 from ._harness import environment
 from .estimators import bench_estimators
+from .fit import bench_fit
 from .measure import bench_measure
 from .model import SECTIONS as _MODEL_SECTIONS, blas_report
 from .render import bench_render
 
-SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators, "render": bench_render,
+SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators, "fit": bench_fit, "render": bench_render,
             "measure": bench_measure}
-ORDER = ("model", "discretise", "kf", "estimators", "render", "measure")
+ORDER = ("model", "discretise", "kf", "estimators", "fit", "render", "measure")
 
 
 def _json_default(o):
@@ -54,7 +55,7 @@ def main(argv=None) -> int:
           f"heartcv {env['heartcv']}; {env['processor']}, {env['cpu_count']} CPUs")
     print("BLAS (threadpoolctl.threadpool_info(), library defaults):")
     print("\n".join(lines))
-    print("Small-matrix sections (discretise, kf, estimators) and measure run under "
+    print("Small-matrix sections (discretise, kf, estimators, fit) and measure run under "
           "threadpoolctl.threadpool_limits(1): one BLAS thread.")
     print("Times: median of repeats (time.perf_counter, GC off during a sample); n = repeats.")
 
