@@ -55,6 +55,7 @@ def _measure(tmp, scene, frames, rig_file, csv_file=None):
 
 
 def test_phantom_sequence_accuracy(tmp_path, rig_file):
+    from heartcv.io import read_scene
     from tracker.io import read_measurements
 
     _, s = _measure(tmp_path, PHANTOM / "scene.yaml", 60, rig_file)
@@ -63,17 +64,26 @@ def test_phantom_sequence_accuracy(tmp_path, rig_file):
     assert s["tracks_off_surface"] == 0
     assert s["aligned_error_rms_m"] <= 0.05e-3
     assert s["aligned_error_p99_m"] <= 0.15e-3
-    # the raw error is the gauge: a rotation within the calibration's tolerance, errors within what it implies
-    assert s["rig_gauge_rotation_deg"] <= 0.02
+    # the raw error is the gauge: a rotation within the calibration's tolerance, errors within what it implies.
+    # The calibrated rig frame is camera 0 as calibrated: its principal point (tolerance 2 px = 0.019 deg at
+    # f = 5973 px) and the camera-to-camera rotations (0.02 deg) tilt the triangulated points together, so the
+    # gauge may reach ~0.04 deg; fitted from the tracks' birth positions over a 40 mm patch it also carries their
+    # depth errors (10 um across 40 mm is 0.014 deg). Measured: 0.018 deg (30 fps render), 0.028 deg (60 fps).
+    assert s["rig_gauge_rotation_deg"] <= 0.04
     assert s["error_rms_m"] <= 0.05e-3 + np.radians(s["rig_gauge_rotation_deg"]) * 0.7
     m = read_measurements(tmp_path / "meas.npz")
     assert m.frame == "rig" and m.n_frames == 60
     assert m.input_names == ("pressure",) and m.input_units == ("Pa",)
-    assert np.allclose(np.diff(m.times), 1 / 30)
+    rate = read_scene(PHANTOM / "scene.yaml").motion.frame_rate_hz
+    assert rate == 60 and np.allclose(np.diff(m.times), 1 / rate)
     # the covariances describe the scatter of the displacements from the reference positions (what the
     # estimators use; a constant error of a track cancels there): mean NEES per degree of freedom near 1
     assert s["displacement_error_rms_m"] <= s["aligned_error_rms_m"]
-    assert 0.5 <= s["displacement_nees_per_dof"] <= 2.0
+    # Never over-confident (<= 2); conservative by at most 2x in sigma (>= 0.25): the pixel sigma is pooled from the
+    # reprojection residuals, which also hold static errors of the rig (constant per point, they cancel in a
+    # displacement). Measured: 1.1 (60 frames at 30 fps), 0.59 (150 at 30 fps), 0.41 (60 at 60 fps; less motion
+    # per frame, smaller tracking errors), 0.37 (240 at 60 fps).
+    assert 0.25 <= s["displacement_nees_per_dof"] <= 2.0
 
 
 def test_instrument_occlusion(tmp_path, rig_file):
