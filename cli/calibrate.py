@@ -11,7 +11,6 @@ from pathlib import Path
 
 import click
 
-from heartcv.io import VIDEO_SUFFIXES  # one list of video suffixes for calibrate and measure
 
 from .options import BadInput, StageFailed, emit_json, json_opt, progress
 
@@ -80,26 +79,19 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
 # -- inputs -----------------------------------------------------------------------------------------------------
 def _find_cameras(folder: Path):
     """[(name, kind, paths)]: kind 'images' (paths: image files) or 'video' (paths: [video file])."""
-    from heartcv.io import list_image_folder, natural_key
+    from heartcv.io import HeartcvIOError, camera_entries
 
     if not folder.is_dir():
         raise BadInput(f"{folder}: no such folder" if not folder.exists() else f"{folder}: not a folder")
-    subdirs = sorted((p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")),
-                     key=lambda p: natural_key(p.name))
-    cams = []
-    for d in subdirs:
-        files = list_image_folder(d)
-        if files:
-            cams.append((d.name, "images", files))
-        else:
+    try:
+        images, videos = camera_entries(folder)
+    except HeartcvIOError as exc:
+        raise BadInput(str(exc)) from None
+    found = {name for name, _ in images}
+    for d in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        if d.name not in found:
             log.warning("%s: no images, not a camera", d)
-    videos = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES),
-                    key=lambda p: natural_key(p.name))
-    if cams and videos:
-        raise BadInput(f"{folder}: holds both image folders ({', '.join(c[0] for c in cams)}) and videos "
-                       f"({', '.join(v.name for v in videos)}); one kind expected")
-    if videos:
-        cams = [(v.stem, "video", [v]) for v in videos]
+    cams = [(v.stem, "video", [v]) for v in videos] if videos else [(n, "images", fs) for n, fs in images]
     if len(cams) < 2:
         raise BadInput(f"{folder}: {len(cams)} camera(s) found; at least 2 expected (one sub-folder of images or "
                        f"one video file per camera)")

@@ -36,8 +36,8 @@ __all__ = [
     "TARGET_FORMAT", "read_target", "write_target", "write_board_image",
     "RIG_FORMAT", "DIST_NAMES", "rig_to_dict", "rig_from_dict", "read_rig", "write_rig",
     "write_colmap", "colmap_camera", "write_kalibr", "kalibr_camchain",
-    "VIDEO_SUFFIXES", "FrameSource", "open_frame_source", "FrameReader", "read_timestamps", "read_mask",
-    "read_inputs_csv_columns",
+    "VIDEO_SUFFIXES", "FrameSource", "open_frame_source", "camera_entries", "FrameReader", "read_timestamps",
+    "read_mask", "read_inputs_csv_columns",
 ]
 
 
@@ -794,7 +794,10 @@ class FrameSource:
                 if f is None]
 
 
-def _camera_entries(folder: Path):
+def camera_entries(folder: Path):
+    """The cameras of a sequence or calibration folder: ``(cams, videos)`` with ``cams`` the ``[(name, image
+    files)]`` of its sub-folders that hold images (natural order; hidden and empty ones left out) and ``videos``
+    its video files (``VIDEO_SUFFIXES``); HeartcvIOError when it holds both kinds."""
     subdirs = sorted((p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")),
                      key=lambda p: natural_key(p.name))
     cams = [(d.name, list_image_folder(d)) for d in subdirs]
@@ -834,7 +837,7 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1) -> Fram
     folder = Path(folder)
     if not folder.is_dir():
         raise HeartcvIOError(folder, "no such folder" if not folder.exists() else "not a folder")
-    cams, videos = _camera_entries(folder)
+    cams, videos = camera_entries(folder)
     entries = [(n, fs) for n, fs in cams] if cams else [(v.stem, [v]) for v in videos]
     found = [e[0] for e in entries]
     if cameras is not None:
