@@ -81,19 +81,24 @@ def atomic_path(path, suffix=None):
 
 
 # -- model ---------------------------------------------------------------------------------------
-def read_model(path) -> ModelConfig:
-    """Read and validate a model YAML file (ConfigError names the field, FileFormatError the file)."""
+def _load_yaml(path: Path, what: str):
+    """The parsed YAML of ``path``; FileFormatError naming the file when it cannot be read or parsed."""
     import yaml
 
-    path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise FileFormatError(path, f"cannot read model file ({exc.strerror})") from None
+        raise FileFormatError(path, f"cannot read {what} ({exc.strerror})") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise FileFormatError(path, f"not valid YAML: {exc}") from None
+
+
+def read_model(path) -> ModelConfig:
+    """Read and validate a model YAML file (ConfigError names the field, FileFormatError the file)."""
+    path = Path(path)
+    data = _load_yaml(path, "model file")
     try:
         return model_config_from_dict(data)
     except ConfigError as exc:
@@ -432,15 +437,5 @@ def write_parameters(path, result, meta: dict | None = None):
 
 def read_parameters(path):
     """Read a parameters file into a ``tracker.fit.FitResult`` (FileFormatError names the file and field)."""
-    import yaml
-
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise FileFormatError(path, f"cannot read parameters file ({exc.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise FileFormatError(path, f"not valid YAML: {exc}") from None
-    return parameters_from_dict(data, path)
+    return parameters_from_dict(_load_yaml(path, "parameters file"), path)

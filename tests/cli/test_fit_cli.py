@@ -3,7 +3,6 @@
 import json
 import sys
 import types
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -162,16 +161,8 @@ def _transform(T, m: MeasurementSet, keep, frame):
 
 @pytest.fixture
 def fake_registration(monkeypatch):
-    """A stand-in for tracker.registration with its API: it knows the true transform."""
-
-    @dataclass(frozen=True)
-    class Registration:
-        patch_from_rig: np.ndarray
-        rms_m: float
-        on_patch: np.ndarray
-        n_points: int
-        converged: bool
-        message: str
+    """A stand-in for tracker.registration's functions (its Registration type): it knows the true transform."""
+    from tracker.registration import Registration
 
     calls = []
 
