@@ -153,7 +153,7 @@ def environment() -> dict:
     except Exception:  # pragma: no cover - skfem is a hard dependency of tracker
         env["scikit-fem"] = None
     try:
-        import tracker
+        import heartcv.tracker as tracker
 
         env["heartcv"] = getattr(tracker, "__version__", None)
     except Exception:  # pragma: no cover

@@ -41,7 +41,7 @@ __all__ = ["bench_estimators", "ge_predict_flops", "update_flops", "kf_step_flop
            "ekf_step_flops", "lift_flops", "basis_flops", "FIVE"]
 
 FIVE = ("rho", "alpha1", "alpha2", "E", "nu")
-PRIOR_STD_5 = {"rho": 0.3, "alpha1": 1.0, "alpha2": 1.0, "E": 0.5, "nu": 0.5}  # phi units (spec/model.md §4.2)
+PRIOR_STD_5 = {"rho": 0.3, "alpha1": 1.0, "alpha2": 1.0, "E": 0.5, "nu": 0.5}  # phi units (docs/spec/model.md §4.2)
 SEED = 0
 PAPER_2010 = {"ge_s": 0.374, "kf_s": 0.105}
 TARGETS = {"ge_over_kf_max": 4.0, "ukf_over_ge_min": 10.0, "ge_step_max_s": 0.010}
@@ -154,7 +154,7 @@ def _five_parameter_dict() -> dict:
 
 def _head(meas, k: int):
     """The first k frames of a MeasurementSet."""
-    from tracker.measurements import MeasurementSet
+    from heartcv.tracker.measurements import MeasurementSet
 
     return MeasurementSet(meas.times[:k], meas.point_ids, meas.positions[:k], meas.covariances[:k], meas.reference,
                           meas.inputs[:k], meas.input_names, meas.input_units, meas.frame, meta=dict(meas.meta))
@@ -218,9 +218,9 @@ def _settled_filter(model, meas, options, k):
     """A GE JointFilter, the joint state after frame k (the run_joint cycle) and what the next step needs."""
     from scipy.linalg import block_diag
 
-    from tracker.joint import JointFilter, joint_prior
-    from tracker.kalman import update
-    from tracker.tracking import locate_points
+    from heartcv.tracker.joint import JointFilter, joint_prior
+    from heartcv.tracker.kalman import update
+    from heartcv.tracker.tracking import locate_points
 
     pts = locate_points(model, meas)
     obs = pts.observation
@@ -252,10 +252,10 @@ def _settled_filter(model, meas, options, k):
 
 def _isolated_ge(model, meas, options, *, repeats, min_sample):
     """Time one GE prediction at the settled state of mid-sequence, part by part."""
-    from tracker import ge as ge_mod
-    from tracker.ge import conditional_split
-    from tracker.kalman import symmetrise, update
-    from tracker.sampling import sample
+    from heartcv.tracker import ge as ge_mod
+    from heartcv.tracker.ge import conditional_split
+    from heartcv.tracker.kalman import symmetrise, update
+    from heartcv.tracker.sampling import sample
 
     k = meas.n_frames // 2 - 1
     filt, state, nx = _settled_filter(model, meas, options, k)
@@ -414,11 +414,11 @@ def _print_isolated(label, iso, step_median=None):
 
 # -- the section -----------------------------------------------------------------------------------------------------
 def bench_estimators(*, quick: bool = False) -> dict:
-    from tracker.config import model_config_from_dict
-    from tracker.joint import JointOptions, run_joint
-    from tracker.model import build_model
-    from tracker.simulate import simulate, to_measurements
-    from tracker.tracking import locate_points, run_kalman
+    from heartcv.tracker.config import model_config_from_dict
+    from heartcv.tracker.joint import JointOptions, run_joint
+    from heartcv.tracker.model import build_model
+    from heartcv.tracker.simulate import simulate, to_measurements
+    from heartcv.tracker.tracking import locate_points, run_kalman
 
     from .model import build
 

@@ -32,9 +32,9 @@ SEED = 0
 
 
 def _setup(frames: int):
-    from tracker.io import read_model
-    from tracker.model import build_model
-    from tracker.simulate import simulate, to_measurements
+    from heartcv.tracker.io import read_model
+    from heartcv.tracker.model import build_model
+    from heartcv.tracker.simulate import simulate, to_measurements
 
     cfg = read_model(MODEL)
     model = build_model(cfg)
@@ -43,9 +43,9 @@ def _setup(frames: int):
 
 
 def bench_fit(*, quick: bool = False) -> dict:
-    from tracker.fit import FitProblem, fit, undeformed_references
-    from tracker.joint import run_joint
-    from tracker.tracking import run_kalman
+    from heartcv.tracker.fit import FitProblem, fit, undeformed_references
+    from heartcv.tracker.joint import run_joint
+    from heartcv.tracker.tracking import run_kalman
 
     frames = 40 if quick else 120
     repeats = 2 if quick else 5

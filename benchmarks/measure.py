@@ -84,7 +84,7 @@ def _sequence(n_frames: int):
     if have >= n_frames:
         return folder, info
     exe = Path(sys.executable).parent / "heartcv"
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-c", "import sys; from cli.main import main; "
+    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-c", "import sys; from heartcv.cli.main import main; "
                                                                   "sys.exit(main())"]
     cmd += ["-q", "render", "sequence", str(SCENE), "-o", str(folder), "--frames", str(n_frames), "--workers", "2"]
     print(f"rendering {n_frames} frames into {folder} (not part of the measurement): {' '.join(cmd[1:])}")

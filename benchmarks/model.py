@@ -9,7 +9,7 @@ Three sections, each a function that prints plain-text tables and returns a JSON
 * :func:`bench_kf`         -- Kalman step on the paper model (``run_kalman`` step times and a bare
   ``predict`` + ``update``) against one dense 168 x 168 DGEMM (baseline); single-threaded BLAS.
 
-Spec targets (spec/model.md §2.6): paper whole build 0.17 s, medium assembly 0.31 s, fine assembly 0.71 s.
+Spec targets (docs/spec/model.md §2.6): paper whole build 0.17 s, medium assembly 0.31 s, fine assembly 0.71 s.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ SPEC_S = {
     ("assembly", "medium"): 0.31,
     ("assembly", "fine"): 0.71,
 }
-"""Spec numbers (seconds) of spec/model.md §2.6 that the measurements are compared with."""
+"""Spec numbers (seconds) of docs/spec/model.md §2.6 that the measurements are compared with."""
 
 # repeats per mesh: (whole build, assembly alone, naive ElementVector assembly)
 _REPEATS = {"paper": (7, 7, 7), "medium": (3, 5, 3), "fine": (1, 3, 0)}
@@ -51,7 +51,7 @@ _QUICK_REPEATS = {"paper": (3, 3, 3), "medium": (1, 2, 1), "fine": (0, 0, 0)}
 # -- configurations and models ------------------------------------------------------------------
 def mesh_config(name: str):
     """The paper model file with ``geometry.grid`` (and ``reduction``) of mesh ``name``."""
-    from tracker.config import model_config_from_dict
+    from heartcv.tracker.config import model_config_from_dict
 
     grid, reduction = MESHES[name]
     data = copy.deepcopy(_paper_dict())
@@ -76,7 +76,7 @@ _MODELS: dict = {}
 def build(name: str):
     """A built model of mesh ``name`` (cached for the run; the build benchmark refreshes the cache)."""
     if name not in _MODELS:
-        from tracker.model import build_model
+        from heartcv.tracker.model import build_model
 
         _MODELS[name] = build_model(mesh_config(name))
     return _MODELS[name]
@@ -124,9 +124,9 @@ def _rel_diff(A, B) -> float:
 
 
 def bench_model(*, quick: bool = False) -> dict:
-    from tracker.fem import assemble
-    from tracker.geometry import build_mesh
-    from tracker.model import build_model
+    from heartcv.tracker.fem import assemble
+    from heartcv.tracker.geometry import build_mesh
+    from heartcv.tracker.model import build_model
 
     reps = _QUICK_REPEATS if quick else _REPEATS
     print(f"BLAS threads in this section: {blas_threads()} (library default; the sparse LU and ARPACK work of "
@@ -225,7 +225,7 @@ def ge_thetas(theta0, count: int = 21) -> np.ndarray:
 
 
 def bench_discretise(*, quick: bool = False) -> dict:
-    from tracker.discretise import METHODS
+    from heartcv.tracker.discretise import METHODS
 
     models = {name: build(name) for name in ("paper", "medium")}  # built outside the timed region
     repeats = 3 if quick else 11
@@ -287,15 +287,15 @@ def bench_discretise(*, quick: bool = False) -> dict:
 # -- 3. Kalman step -----------------------------------------------------------------------------
 def _measurement_set(sim):
     """Patch-frame MeasurementSet of a simulation (as ``heartcv model simulate`` writes it)."""
-    from tracker.simulate import to_measurements
+    from heartcv.tracker.simulate import to_measurements
 
     return to_measurements(sim, {"producer": "benchmarks"})
 
 
 def bench_kf(*, quick: bool = False) -> dict:
-    from tracker.kalman import GaussianState, predict, update
-    from tracker.simulate import simulate
-    from tracker.tracking import locate_points, run_kalman
+    from heartcv.tracker.kalman import GaussianState, predict, update
+    from heartcv.tracker.simulate import simulate
+    from heartcv.tracker.tracking import locate_points, run_kalman
 
     model = build("paper")
     n = model.state_dim

@@ -35,7 +35,7 @@ TARGET_TRIPLETS_PER_S = 1.0
 def _setup(frames: int, workers: int):
     from heartcv.io import read_scene, scene_file_path
     from heartcv.render.sequence import prepare_sequence
-    from tracker.io import read_model
+    from heartcv.tracker.io import read_model
 
     scene = read_scene(SCENE)
     scene = replace(scene, motion=replace(scene.motion, duration_s=(frames - 1) / scene.motion.frame_rate_hz))

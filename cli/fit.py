@@ -31,7 +31,7 @@ def register_rig_measurements(meas, model, frames=10):
     ``(patch-frame set, registration)``. BadInput when registration is not available or the data do not fit,
     StageFailed when it does not converge."""
     try:
-        from tracker.registration import register, to_patch_frame
+        from heartcv.tracker.registration import register, to_patch_frame
     except ImportError:
         raise BadInput("the measurements are in the rig frame and registration onto the patch is not available "
                        "(tracker.registration); register them to the patch frame first") from None
@@ -70,8 +70,8 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
     import numpy as np
     from threadpoolctl import threadpool_limits
 
-    from tracker.fit import fit as run_fit
-    from tracker.io import FileFormatError, file_hash, read_measurements, write_parameters
+    from heartcv.tracker.fit import fit as run_fit
+    from heartcv.tracker.io import FileFormatError, file_hash, read_measurements, write_parameters
 
     if Path(output).suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
@@ -119,10 +119,10 @@ def _summary(result, output) -> dict:
     """The --json summary of a converged fit."""
     import numpy as np
 
-    from tracker.params import NAMES
+    from heartcv.tracker.params import NAMES
 
     est = list(result.estimated)
-    # a standard deviation above 1 in phi: the data do not pin the parameter down to a factor e (spec/model.md §4.3)
+    # a standard deviation above 1 in phi: the data do not pin the parameter down to a factor e (docs/spec/model.md §4.3)
     poor = [n for n, v in zip(est, np.diag(result.cov_phi)) if v > 1.0]
     summary = {
         "theta": dict(zip(NAMES, map(float, result.theta))),
@@ -157,7 +157,7 @@ def apply_stored_registration(meas, registration: dict, params_path):
     import numpy as np
 
     try:
-        from tracker.registration import Registration, to_patch_frame
+        from heartcv.tracker.registration import Registration, to_patch_frame
     except ImportError:
         raise BadInput("the measurements are in the rig frame and registration onto the patch is not available "
                        "(tracker.registration)") from None

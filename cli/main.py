@@ -9,15 +9,15 @@ import click
 
 # command name -> "module:attribute"; modules are imported only when the command runs (fast --help)
 COMMANDS = {
-    "model": "cli.model:model",
-    "track": "cli.track:track",
-    "simulate": "cli.simulate:simulate",
-    "target": "cli.target:target",
-    "calibrate": "cli.calibrate:calibrate",
-    "render": "cli.render:render",
-    "measure": "cli.measure:measure",
-    "report": "cli.report:report",
-    "fit": "cli.fit:fit",
+    "model": "heartcv.cli.model:model",
+    "track": "heartcv.cli.track:track",
+    "simulate": "heartcv.cli.simulate:simulate",
+    "target": "heartcv.cli.target:target",
+    "calibrate": "heartcv.cli.calibrate:calibrate",
+    "render": "heartcv.cli.render:render",
+    "measure": "heartcv.cli.measure:measure",
+    "report": "heartcv.cli.report:report",
+    "fit": "heartcv.cli.fit:fit",
 }
 
 

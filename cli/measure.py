@@ -150,8 +150,8 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     if n_bad:
         log.warning("%d of %d frames had fewer than two readable images: all points missing there", n_bad, count)
 
-    from tracker.io import write_measurements
-    from tracker.measurements import MeasurementSet
+    from heartcv.tracker.io import write_measurements
+    from heartcv.tracker.measurements import MeasurementSet
 
     meta = {"producer": "heartcv measure", "frame_rig": rig_file, "camera_names": names,
             "ref_camera": names[ref], "backend": be.name, "sigma_px": res.sigma_px,

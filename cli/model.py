@@ -50,9 +50,9 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
     """Simulate noisy 3-D measurements of MODEL_FILE's surface points."""
     import numpy as np
 
-    from tracker import inputs as inp
-    from tracker.io import file_hash, write_measurements, write_truth
-    from tracker.simulate import simulate as run, to_measurements
+    from heartcv.tracker import inputs as inp
+    from heartcv.tracker.io import file_hash, write_measurements, write_truth
+    from heartcv.tracker.simulate import simulate as run, to_measurements
 
 
     m = load_model(model_file)

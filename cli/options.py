@@ -1,6 +1,6 @@
 """Shared options, value handlers and error types of the command-line interface.
 
-Exit codes (DESIGN.md §1): 0 ok, 1 the stage failed (did not converge, diverged), 2 bad usage or bad input.
+Exit codes (docs/design.md §1): 0 ok, 1 the stage failed (did not converge, diverged), 2 bad usage or bad input.
 
 Shared options: ``json_opt`` (--json: machine-readable summary on stdout), ``seed_opt`` (--seed),
 ``output_opt`` (-o/--output). Used by: model info/simulate, track.
@@ -58,9 +58,9 @@ def _default(o):
 
 def load_model(path):
     """Read and build a model file, turning input errors into exit 2."""
-    from tracker.config import ConfigError
-    from tracker.io import FileFormatError, read_model
-    from tracker.model import build_model
+    from heartcv.tracker.config import ConfigError
+    from heartcv.tracker.io import FileFormatError, read_model
+    from heartcv.tracker.model import build_model
 
     try:
         cfg = read_model(path)

@@ -154,8 +154,8 @@ def sequence(ctx, scene_file, output, seed, workers, frames, stiffness_cycle, as
     from heartcv.io import (HeartcvIOError, atomic_folder, encode_png, file_hash, scene_file_path,
                             write_inputs_csv, write_render_truth, write_rig)
     from heartcv.render.sequence import inputs_table, prepare_sequence, render_sequence, sequence_truth
-    from tracker.config import ConfigError
-    from tracker.io import FileFormatError, read_model
+    from heartcv.tracker.config import ConfigError
+    from heartcv.tracker.io import FileFormatError, read_model
 
     scene = _load_scene(scene_file, seed)
     if stiffness_cycle is not None:

@@ -40,8 +40,8 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
     """Compare the estimate files ESTIMATES (`heartcv track` outputs of one measurement file): one-step
     prediction error, parameter trajectories with ±2σ bands, NIS with its χ² band, error against the truth,
     step times. Writes the folder OUTPUT atomically."""
-    from tracker import metrics as tm
-    from tracker.io import file_hash
+    from heartcv.tracker import metrics as tm
+    from heartcv.tracker.io import file_hash
 
     from .report_doc import html, markdown, mm
     from .report_plots import write_figures
@@ -98,7 +98,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
 # -- inputs -----------------------------------------------------------------------------------------
 def _load_estimates(paths) -> dict:
     """label -> {'path', 'est'}; labels are the estimator names, ``name:stem`` where a name repeats."""
-    from tracker.io import FileFormatError, read_estimates
+    from heartcv.tracker.io import FileFormatError, read_estimates
 
     loaded = []
     for p in paths:
@@ -121,7 +121,7 @@ def _load_estimates(paths) -> dict:
 
 
 def _check_sequences(runs: dict, allow_mixed: bool) -> None:
-    from tracker.metrics import sequence_mismatch
+    from heartcv.tracker.metrics import sequence_mismatch
 
     items = list(runs.values())
     problems = [f"{items[0]['path']} and {r['path']}: {why}" for r in items[1:]
@@ -151,8 +151,8 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
     """(σ in m, source) from --measurements, else from an estimate file's meta ``measurement_noise_m``."""
     import numpy as np
 
-    from tracker.io import FileFormatError, file_hash, read_measurements
-    from tracker.metrics import measurement_noise_level
+    from heartcv.tracker.io import FileFormatError, file_hash, read_measurements
+    from heartcv.tracker.metrics import measurement_noise_level
 
     if meas_file:
         try:
@@ -182,7 +182,7 @@ def _load_truth(path, runs: dict, allow_mixed: bool, meas_file=None) -> dict:
     """{'kind', 'times', 'theta', 'positions': label -> (K, P, 3) where usable, 'notes'} of a truth file."""
     import numpy as np
 
-    from tracker.io import TRUTH_FORMAT, FileFormatError, read_truth
+    from heartcv.tracker.io import TRUTH_FORMAT, FileFormatError, read_truth
 
     fmt = _npz_format(path)
     truth = {"kind": None, "path": path, "positions": {}, "notes": []}
@@ -233,7 +233,7 @@ def _render_truth_positions(truth, path, runs, meas_file):
         return
     from heartcv.evaluate import truth_errors
     from heartcv.io import HeartcvIOError, read_render_truth
-    from tracker.io import FileFormatError, read_measurements
+    from heartcv.tracker.io import FileFormatError, read_measurements
 
     try:
         meas = read_measurements(meas_file)
@@ -319,9 +319,9 @@ PER_ESTIMATOR_KEYS = (
 def _metrics_document(runs, per, first, noise, noise_source, truth, allow_mixed) -> dict:
     import numpy as np
 
-    from tracker import __version__
-    from tracker.metrics import mean_noise_norm
-    from tracker.params import NAMES
+    from heartcv.tracker import __version__
+    from heartcv.tracker.metrics import mean_noise_norm
+    from heartcv.tracker.params import NAMES
 
     t = np.asarray(first.times, float)
     estimators = {}
@@ -361,7 +361,7 @@ def _metrics_document(runs, per, first, noise, noise_source, truth, allow_mixed)
 
 
 def _differs(a, b) -> bool:
-    from tracker.metrics import sequence_mismatch
+    from heartcv.tracker.metrics import sequence_mismatch
 
     return sequence_mismatch(a, b) is not None
 

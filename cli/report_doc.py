@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tracker.params import NAMES, UNITS
+from heartcv.tracker.params import NAMES, UNITS
 
 __all__ = ["markdown", "html", "mm"]
 

@@ -325,8 +325,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
     """
     import numpy as np
 
-    from tracker.metrics import mean_noise_norm
-    from tracker.params import NAMES, UNITS
+    from heartcv.tracker.metrics import mean_noise_norm
+    from heartcv.tracker.params import NAMES, UNITS
 
     from .plots import COLORS, save_png
 
@@ -385,7 +385,7 @@ def _shown_parameters(runs, ps, truth) -> list:
     """Indices of the parameters worth a figure: estimated by some run, or off the truth / varying in it."""
     import numpy as np
 
-    from tracker.params import NAMES
+    from heartcv.tracker.params import NAMES
 
     shown = []
     for j, name in enumerate(NAMES):

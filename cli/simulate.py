@@ -17,7 +17,7 @@ SUMMARY = "summary.json"
 
 
 def _estimators_handler(ctx, param, value):
-    from tracker.study import ESTIMATORS  # imported here, not at module level: `heartcv --help` stays fast
+    from heartcv.tracker.study import ESTIMATORS  # imported here, not at module level: `heartcv --help` stays fast
 
     names = [v.strip().lower() for v in value.split(",") if v.strip()]
     if not names:
@@ -51,7 +51,7 @@ def simulate(ctx, model_file, runs, steps, seed, estimators, workers, output, as
     (error, consistency and timing statistics) into the folder given by -o."""
     from threadpoolctl import threadpool_limits
 
-    from tracker import study as st
+    from heartcv.tracker import study as st
 
     t_start = time.perf_counter()
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0)
@@ -64,7 +64,7 @@ def simulate(ctx, model_file, runs, steps, seed, estimators, workers, output, as
     with progress(range(runs), "runs", length=runs, verbosity=verbosity) as bar:
         tick = (lambda done, total: bar.update(1)) if hasattr(bar, "update") else None
         try:
-            with threadpool_limits(1):  # small matrices: one BLAS thread is far faster (spec/estimator §7.5)
+            with threadpool_limits(1):  # small matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
                 study = st.run_study(m, runs=runs, steps=steps, seed=seed, estimators=estimators,
                                      workers=workers, progress=tick)
         except FloatingPointError as exc:  # the truth simulation itself diverged
@@ -90,8 +90,8 @@ def simulate(ctx, model_file, runs, steps, seed, estimators, workers, output, as
 def _write(out: Path, study, statistics, summary: dict, model_file, t_start: float) -> None:
     """Write study.npz and the figures, then summary.json last, each file atomically; sets
     ``summary['wall_s']``."""
-    from tracker import __version__, study as st
-    from tracker.io import STUDY_FORMAT, atomic_path, file_hash, write_study
+    from heartcv.tracker import __version__, study as st
+    from heartcv.tracker.io import STUDY_FORMAT, atomic_path, file_hash, write_study
 
     out.mkdir(parents=True, exist_ok=True)
     old = _previous_files(out)
@@ -118,7 +118,7 @@ def _previous_files(out: Path) -> list:
         doc = json.loads((out / SUMMARY).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return []
-    from tracker.io import STUDY_FORMAT
+    from heartcv.tracker.io import STUDY_FORMAT
 
     if not isinstance(doc, dict) or doc.get("format") != STUDY_FORMAT[0]:
         return []
@@ -128,7 +128,7 @@ def _previous_files(out: Path) -> list:
 def _figures(out: Path, study, statistics) -> list:
     import numpy as np
 
-    from tracker.params import NAMES, UNITS
+    from heartcv.tracker.params import NAMES, UNITS
 
     from .plots import SYMBOLS, TITLES, consistency_figure, error_figure, save_png
 
@@ -169,7 +169,7 @@ def _fmt(v, scale=1.0):
 
 
 def _log_table(summary):
-    from tracker.params import NAMES, UNITS
+    from heartcv.tracker.params import NAMES, UNITS
 
     from .plots import si_scale
 

@@ -52,10 +52,10 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     """
     import numpy as np
 
-    from tracker.io import FileFormatError, file_hash, read_measurements, read_parameters, write_estimates
-    from tracker.joint import JointOptions, run_joint
-    from tracker.params import NAMES
-    from tracker.tracking import EstimationDiverged, run_kalman
+    from heartcv.tracker.io import FileFormatError, file_hash, read_measurements, read_parameters, write_estimates
+    from heartcv.tracker.joint import JointOptions, run_joint
+    from heartcv.tracker.params import NAMES
+    from heartcv.tracker.tracking import EstimationDiverged, run_kalman
 
     try:
         meas = read_measurements(measurements)
@@ -72,7 +72,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         meas = _apply_params_registration(meas, fitted, params_file, measurements)
         if was_rig:
             # measured references are birth-frame (deformed) positions: use the fit's undeformed offsets
-            from tracker.fit import undeformed_references
+            from heartcv.tracker.fit import undeformed_references
 
             try:
                 meas = undeformed_references(m, meas, fitted.theta, fitted.frames)
@@ -106,7 +106,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
             "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
     theta0 = prior_std = None
     if fitted is not None:
-        from tracker.fit import tracking_prior
+        from heartcv.tracker.fit import tracking_prior
 
         meta["params"] = str(params_file)
         meta["inputs_hash"]["params"] = file_hash(params_file)
@@ -116,7 +116,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
             theta0, prior_std, source = tracking_prior(m.config, fitted)
             meta["prior_source"] = source
     try:
-        with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (spec/estimator §7.5)
+        with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
             if estimator == "kf":
                 est = run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph)
             else:

@@ -7,7 +7,7 @@ outlier views (:func:`outlier_views`) and calibrates again until none is left. T
 Conventions. Reprojection RMS is OpenCV's: ``sqrt(mean over corners of |uv_measured - uv_projected|^2)`` in
 pixels (one number per corner, not per coordinate). Distortion models: 5 coefficients ``(k1, k2, p1, p2, k3)``
 (the default), 8 (rational: ``+ k4, k5, k6``) or 4 (``k3 = 0``: the models of COLMAP's ``OPENCV`` camera and
-Kalibr's ``radtan``); skew is fixed at 0. Poses follow DESIGN.md §3 (``cam_from_board``:
+Kalibr's ``radtan``); skew is fixed at 0. Poses follow docs/design.md §3 (``cam_from_board``:
 ``x_cam = R x_board + t``, metres).
 
 References

@@ -1,6 +1,6 @@
 """Pinhole camera with OpenCV's distortion model, and a rig of such cameras.
 
-Conventions (DESIGN.md §3): camera axes as OpenCV (x right, y down, z forward); transforms are named
+Conventions (docs/design.md §3): camera axes as OpenCV (x right, y down, z forward); transforms are named
 ``<target>_from_<source>`` with ``x_target = R x_source + t``; the rig frame is camera 0's frame unless a rig
 file says otherwise. Pixel coordinates: the centre of the top-left pixel is (0, 0) (OpenCV).
 

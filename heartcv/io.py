@@ -1,6 +1,6 @@
 """File I/O of the heartcv package: images, target files, rig files and the rig's COLMAP and Kalibr exports.
 
-All reading and writing of ``heartcv/`` happens here, called from ``cli/`` (STYLE.md: pure cores, I/O at the
+All reading and writing of ``heartcv/`` happens here, called from ``cli/`` (docs/style.md: pure cores, I/O at the
 edge). Formats are documented in ``docs/formats.md``. Conventions:
 
 - Every write is atomic (:func:`atomic_path`): a temporary file beside the destination, renamed over it only

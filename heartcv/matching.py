@@ -1,6 +1,6 @@
 """Cross-view association of reference corners: a plane sweep along each corner's viewing ray.
 
-The rig's cameras are far apart (DESIGN.md §7: the pairs see the surface 43–57° apart), so a patch looks
+The rig's cameras are far apart (docs/design.md §7: the pairs see the surface 43–57° apart), so a patch looks
 different in every view and plain descriptor matching is unreliable. Instead, for each corner of the reference
 camera, candidate 3-D points are taken along its viewing ray (every ``step_px`` pixels of motion along the
 epipolar curves of the other cameras, only where the ray is inside every other image); at each candidate the

@@ -1,4 +1,4 @@
-"""Calibration targets: ChArUco boards and chessboards (DESIGN.md §4, target file).
+"""Calibration targets: ChArUco boards and chessboards (docs/design.md §4, target file).
 
 A target is described by a :class:`TargetSpec` (what the target YAML holds). Its corners are numbered like
 OpenCV: chessboard inner corners row by row (``cols x rows`` inner corners, id = row * cols + col), ChArUco

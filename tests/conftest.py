@@ -21,8 +21,8 @@ def paper_dict():
 
 @pytest.fixture(scope="session")
 def paper_model(paper_dict):
-    from tracker.config import model_config_from_dict
-    from tracker.model import build_model
+    from heartcv.tracker.config import model_config_from_dict
+    from heartcv.tracker.model import build_model
 
     return build_model(model_config_from_dict(copy.deepcopy(paper_dict)))
 

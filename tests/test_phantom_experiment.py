@@ -6,7 +6,7 @@
    the truth than the measurements themselves and than the noise level (mean 3-D norms).
 2. The same scene rendered with a constant stiffness (`render sequence --stiffness-cycle 0`) and measured with the
    calibrated rig: `heartcv fit` recovers the truth's E and nu within 2 reported sigmas once the estimator
-   model's own bias is accounted for. That bias (spec/model.md 2.3: a coarser mesh is stiffer) is measured here,
+   model's own bias is accounted for. That bias (docs/spec/model.md 2.3: a coarser mesh is stiffer) is measured here,
    not assumed: the same fit of the same points' true (noise-free) positions.
 """
 
@@ -37,7 +37,7 @@ def work(tmp_path_factory):
 
 def _heartcv(*args):
     env = dict(os.environ, PYTHONPATH=str(SAMPLES.parent))
-    r = subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], env=env, capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "heartcv.cli.main", *map(str, args)], env=env, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout) if "--json" in args else None
 
@@ -61,7 +61,7 @@ def _true_positions_file(meas_path, truth_path, out):
     point its reference-camera pixel saw at birth, heartcv.evaluate; gauge of the calibrated rig removed)."""
     from heartcv.evaluate import truth_errors
     from heartcv.io import read_render_truth
-    from tracker.io import read_measurements, write_measurements
+    from heartcv.tracker.io import read_measurements, write_measurements
 
     raw = read_measurements(meas_path)
     arrays, _ = read_render_truth(truth_path)

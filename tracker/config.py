@@ -21,7 +21,7 @@ FORMAT = "heartcv.model"
 FORMAT_VERSION = 1
 
 
-# prior standard deviation in phi units when the model file gives none (spec/model.md §4.2)
+# prior standard deviation in phi units when the model file gives none (docs/spec/model.md §4.2)
 DEFAULT_PRIOR_STD = {"rho": 0.3, "alpha1": 1.0, "alpha2": 1.0, "E": 0.5, "nu": 0.5}
 GE_DEFAULTS = {"nodes": 5, "variant": "A", "sqrt": "cholesky", "truncation": "sequential"}
 UKF_DEFAULTS = {"alpha": 0.1, "beta": 2.0, "kappa": 0.0}

@@ -1,4 +1,4 @@
-"""Time discretisation of ``M c'' + D c' + K c = F u`` with first-order-hold input (spec/model.md §3).
+"""Time discretisation of ``M c'' + D c' + K c = F u`` with first-order-hold input (docs/spec/model.md §3).
 
 With ``x = [c; c']`` the exact discrete system over one frame interval ``dt`` is
 

@@ -1,4 +1,4 @@
-"""Finite-element matrices of the patch (spec/model.md §2.2–§2.3).
+"""Finite-element matrices of the patch (docs/spec/model.md §2.2–§2.3).
 
 Trilinear hexahedra (Hex1). The three parameter-free matrices are assembled once:
 

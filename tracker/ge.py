@@ -1,4 +1,4 @@
-"""Prediction step of the Rao-Blackwellised Gaussian estimator (GE), spec/estimator.md §2 and §7.2.
+"""Prediction step of the Rao-Blackwellised Gaussian estimator (GE), docs/spec/estimator.md §2 and §7.2.
 
 The joint state is ``z = [x_n; x_l]``: ``x_n`` the M estimated parameters (in phi coordinates), ``x_l`` the
 kinematic state. The model is conditionally linear, ``x_l' = A(x_n) x_l + b(x_n) + w_l``, ``x_n' = x_n + w_n``.

@@ -1,4 +1,4 @@
-"""Geometry of the curved left-ventricular wall patch (spec/model.md §2.1).
+"""Geometry of the curved left-ventricular wall patch (docs/spec/model.md §2.1).
 
 The patch is parameterised by ``(s, t, d)``: arc length along the long axis, circumferential arc length
 and depth below the epicardium. The map to the patch frame is a surface of revolution about the x-axis,

@@ -2,7 +2,7 @@
 
 The joint state is ``z = [x_n; x_l]``: ``x_n`` the estimated parameters in the estimator's coordinates
 ``phi`` (:mod:`tracker.params`; log for rho, alpha1, alpha2, E and ``s = log(lambda/mu)`` for nu), ``x_l`` the
-kinematic state of the patch model. Per frame k (spec/estimator.md; the same cycle as the KF of
+kinematic state of the patch model. Per frame k (docs/spec/estimator.md; the same cycle as the KF of
 :mod:`tracker.tracking`):
 
 1. ``k > 0``: predict with the estimator's rule (GE §2, UKF or EKF §5), first-order-hold input ``u_{k-1}, u_k``;

@@ -1,4 +1,4 @@
-"""Linear Kalman prediction and measurement update on frozen Gaussian states (spec/estimator.md §4, normative).
+"""Linear Kalman prediction and measurement update on frozen Gaussian states (docs/spec/estimator.md §4, normative).
 
 ``predict(prior, A, Q, b)`` and ``update(prediction, y, H, R, offset)`` are pure functions on :class:`GaussianState`
 values (Stone Soup split). The update is the Cholesky form of §4: ``S = H C H^T + R``, ``L_S = chol(S)``,

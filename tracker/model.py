@@ -1,5 +1,5 @@
 """The assembled patch model: FE matrices on the free DOFs, an optional fixed Ritz basis, and the maps to
-discrete systems, process noise and measurements (spec/model.md §2–§4).
+discrete systems, process noise and measurements (docs/spec/model.md §2–§4).
 
 Generalised coordinates: the displacement of the free DOFs is ``c = V q`` with ``V`` the identity (full
 model) or a fixed Ritz basis (reduced model, spec §3.5), normalised so that ``V^T M0 V = vol I`` (then ``q`` is
@@ -342,7 +342,7 @@ def build_model(cfg: ModelConfig) -> PatchModel:
         if free.size > MAX_FULL_DOF:
             raise ValueError(
                 f"model has {free.size} free DOFs; the full model allows at most {MAX_FULL_DOF}. "
-                "Add a 'reduction' section (a fixed Ritz basis, spec/model.md §3.5)."
+                "Add a 'reduction' section (a fixed Ritz basis, docs/spec/model.md §3.5)."
             )
         sub = np.ix_(free, free)
         Kl = fe.K_lambda[sub].toarray()

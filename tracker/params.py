@@ -1,4 +1,4 @@
-"""Material parameters and the estimator's coordinates (spec/model.md §4.2).
+"""Material parameters and the estimator's coordinates (docs/spec/model.md §4.2).
 
 ``theta = [rho, alpha1, alpha2, E, nu]`` in SI units (kg/m^3, 1/s, s, Pa, 1) and
 

@@ -1,4 +1,4 @@
-"""Deterministic Dirac-mixture sampling of the parameter block x^n = theta (spec/estimator.md §1, normative).
+"""Deterministic Dirac-mixture sampling of the parameter block x^n = theta (docs/spec/estimator.md §1, normative).
 
 A standard normal is replaced by the ``D`` equally weighted Cramer-von Mises optimal positions
 ``u_k = Phi^{-1}((2k-1)/(2D))`` (§1.1). The positions are rescaled by ``1/s_D`` so that their variance is one, laid

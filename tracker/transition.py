@@ -2,7 +2,7 @@
 
 The joint estimators (GE, UKF, EKF) need the transition at many parameter values per frame. Building the
 dense ``A(theta)`` (168 x 168) for every sample costs one generalised eigenproblem and four GEMMs. This module
-works in the modal coordinates instead (spec/estimator.md §7.2-7.4, adapted to the exact modal discretisation):
+works in the modal coordinates instead (docs/spec/estimator.md §7.2-7.4, adapted to the exact modal discretisation):
 
 * ``K(theta) = E (a(nu) K_lambda + b(nu) K_mu) = E b(nu) (e^s K_lambda + K_mu)`` and ``M = rho M0``. For a
   fixed ``nu`` the eigenvectors ``Phi`` of ``(K_nu, M0)`` (``Phi^T M0 Phi = I``) do not depend on rho, E,

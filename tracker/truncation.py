@@ -1,4 +1,4 @@
-"""Truncation of a joint Gaussian to box constraints on its parameter block (spec/estimator.md §3, normative).
+"""Truncation of a joint Gaussian to box constraints on its parameter block (docs/spec/estimator.md §3, normative).
 
 - :func:`truncnorm_moments`: mean and variance of N(0, 1) truncated to ``[alpha, beta]``, stable in the tails (§3.1).
 - :func:`truncate_linear`: one constraint ``a <= phi^T z <= b``, the rank-1 form of Simon & Simon (§3.2); exact.

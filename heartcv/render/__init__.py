@@ -1,5 +1,5 @@
 """The renderer: scene files, the heart phantom and its texture, truth motion, ray casting, calibration and
-sequence renders (DESIGN.md §1, ``heartcv render``).
+sequence renders (docs/design.md §1, ``heartcv render``).
 
 Modules: ``scene`` (scene file as typed values, the true rig), ``phantom`` (surface mesh containing the model's
 patch), ``texture`` (procedural epicardium), ``motion`` (truth motion from ``tracker.simulate``), ``raycast``

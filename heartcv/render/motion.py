@@ -96,7 +96,7 @@ def _stiffness_schedule(model, spec, load, t_pre):
         def shape(t):
             return max(float(load(np.atleast_1d(t))[0, col]), 0.0) / p_max
     else:
-        from tracker import inputs as inp
+        from heartcv.tracker import inputs as inp
 
         def shape(t):
             return float(inp.active_tension(np.atleast_1d(t), heart_rate_bpm=ic.heart_rate_bpm, t_max=1.0,
@@ -125,9 +125,9 @@ def simulate_truth(model_config, spec, blur, rng: np.random.Generator):
     model : tracker.model.PatchModel             built at ``frame_rate_hz * q``
     truth : TruthMotion
     """
-    from tracker import inputs as inp
-    from tracker.model import build_model
-    from tracker.simulate import InputSignals, input_signals, simulate
+    from heartcv.tracker import inputs as inp
+    from heartcv.tracker.model import build_model
+    from heartcv.tracker.simulate import InputSignals, input_signals, simulate
 
     q = blur.subsamples if blur.subsamples > 1 else 1
     model = build_model(replace(model_config, frame_rate=spec.frame_rate_hz * q))

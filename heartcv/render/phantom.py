@@ -1,7 +1,7 @@
 """Heart-like phantom surface that contains the model's patch (tracker/geometry.py).
 
 The phantom is a closed surface of revolution about the patch's long axis, the line ``y = -R2, z = 0`` of the
-patch frame (the axis of the patch map, spec/model.md §2.1). Its meridian profile (distance ``r`` from the axis
+patch frame (the axis of the patch map, docs/spec/model.md §2.1). Its meridian profile (distance ``r`` from the axis
 against ``x``) is
 
 * inside the patch band ``|x| <= x_e = R1 sin(L / 2 R1)``: the patch's own meridian circle, so the band *is*

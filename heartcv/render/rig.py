@@ -1,4 +1,4 @@
-"""The scene's true rig: cameras on a regular polygon converging on the heart (DESIGN.md §7).
+"""The scene's true rig: cameras on a regular polygon converging on the heart (docs/design.md §7).
 
 The rig is built in a *ring frame*: the cameras sit on a regular polygon of side ``side_m`` in the plane z = 0
 around the central axis +z (y down, x right), each looking at the convergence point ``(0, 0,

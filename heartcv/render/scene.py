@@ -1,6 +1,6 @@
 """The scene file (``heartcv.scene`` v1) as typed, validated values, and the rig it describes.
 
-:func:`scene_from_dict` takes the parsed YAML mapping, fills the documented defaults (DESIGN.md §7: three
+:func:`scene_from_dict` takes the parsed YAML mapping, fills the documented defaults (docs/design.md §7: three
 cameras on an equilateral triangle of side 0.5 m, 35 mm lenses, 5.86 um pixels, 1920x1080) and rejects an
 unknown key or an out-of-range value with a :class:`SceneError` that names the field (``phantom.texture.fat``).
 Paths in the file (``motion.model``, ``calibration.target``) stay strings here; ``heartcv.io.read_scene``

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 from heartcv.targets import TargetSpec
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "opencv_stereo"

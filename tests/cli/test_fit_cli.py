@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli.fit import fit as fit_cmd
-from cli.main import main
+from heartcv.cli.fit import fit as fit_cmd
+from heartcv.cli.main import main
 from tests.conftest import SAMPLES
-from tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
-from tracker.measurements import MeasurementSet
-from tracker.params import NAMES
+from heartcv.tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
+from heartcv.tracker.measurements import MeasurementSet
+from heartcv.tracker.params import NAMES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
 SIMULATION = str(SAMPLES / "paper_simulation.yaml")
@@ -162,7 +162,7 @@ def _transform(T, m: MeasurementSet, keep, frame):
 @pytest.fixture
 def fake_registration(monkeypatch):
     """A stand-in for tracker.registration's functions (its Registration type): it knows the true transform."""
-    from tracker.registration import Registration
+    from heartcv.tracker.registration import Registration
 
     calls = []
 
@@ -176,9 +176,9 @@ def fake_registration(monkeypatch):
         calls.append("apply")
         return _transform(np.asarray(reg.patch_from_rig), meas, np.flatnonzero(reg.on_patch), "patch")
 
-    mod = types.ModuleType("tracker.registration")
+    mod = types.ModuleType("heartcv.tracker.registration")
     mod.Registration, mod.register, mod.to_patch_frame = Registration, register, to_patch_frame
-    monkeypatch.setitem(sys.modules, "tracker.registration", mod)
+    monkeypatch.setitem(sys.modules, "heartcv.tracker.registration", mod)
     return calls
 
 
@@ -205,7 +205,7 @@ def test_rig_frame_fit_registers_and_track_reuses_it(files, tmp_path, fake_regis
 
 
 def test_rig_frame_without_registration_module_exits_2(files, tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "tracker.registration", None)  # import fails
+    monkeypatch.setitem(sys.modules, "heartcv.tracker.registration", None)  # import fails
     m = read_measurements(files["patch"])
     rig = tmp_path / "rig.npz"
     write_measurements(rig, _transform(RIG_FROM_PATCH, m, np.arange(m.n_points), "rig"))

@@ -17,7 +17,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 from tests.heartcv.render_scenes import scene_dict, write_truth_model
 
 FRAMES = 10
@@ -94,7 +94,7 @@ def _read_csv(path):
 
 # -- a good run -------------------------------------------------------------------------------------------------
 def test_json_summary_keys_with_and_without_truth(case):
-    from tracker.io import read_measurements
+    from heartcv.tracker.io import read_measurements
 
     res = _measure(case, "--json", "--truth", case["truth"])
     assert res.exit_code == 0, res.output

@@ -9,9 +9,9 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 from tests.conftest import SAMPLES
-from tracker.io import read_estimates, read_measurements, read_truth
+from heartcv.tracker.io import read_estimates, read_measurements, read_truth
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
 
@@ -116,8 +116,8 @@ def test_truncated_measurement_file_exits_2_and_writes_nothing(runner, tmp_path)
 
 
 def test_measurements_off_the_patch_exit_2(runner, tmp_path):
-    from tracker.io import write_measurements
-    from tracker.measurements import MeasurementSet
+    from heartcv.tracker.io import write_measurements
+    from heartcv.tracker.measurements import MeasurementSet
 
     meas = tmp_path / "m.npz"
     _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "1", "-o", str(meas), "--json"]))
@@ -131,8 +131,8 @@ def test_measurements_off_the_patch_exit_2(runner, tmp_path):
 
 
 def test_missing_input_column_exits_2(runner, tmp_path):
-    from tracker.io import write_measurements
-    from tracker.measurements import MeasurementSet
+    from heartcv.tracker.io import write_measurements
+    from heartcv.tracker.measurements import MeasurementSet
 
     meas = tmp_path / "m.npz"
     _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "1", "-o", str(meas), "--json"]))

@@ -8,11 +8,11 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 from heartcv.io import list_image_folder, read_image, read_inputs_csv, read_render_truth, read_rig
 from tests.conftest import SAMPLES
 from tests.heartcv.render_scenes import scene_dict, write_truth_model
-from tracker.io import read_model
+from heartcv.tracker.io import read_model
 
 
 @pytest.fixture(scope="module")
@@ -169,7 +169,7 @@ def test_sample_scenes_are_valid(name):
     """The shipped scenes validate, their model and target files load and their phantom builds."""
     from heartcv.io import read_scene, read_target, scene_file_path
     from heartcv.render.phantom import build_phantom
-    from tracker.io import read_model
+    from heartcv.tracker.io import read_model
 
     path = SAMPLES / name / "scene.yaml"
     scene = read_scene(path)

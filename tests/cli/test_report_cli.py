@@ -10,8 +10,8 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from cli.main import main
-from cli.report import report
+from heartcv.cli.main import main
+from heartcv.cli.report import report
 from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
@@ -65,7 +65,7 @@ def test_end_to_end(run):
             assert im.width >= 960 and im.info["dpi"][0] == pytest.approx(150, abs=1)
     assert html.count("data:image/png;base64,") == len(pngs)
 
-    from tracker.io import read_estimates, read_measurements, read_truth
+    from heartcv.tracker.io import read_estimates, read_measurements, read_truth
 
     truth, _ = read_truth(run / "t.npz")
     meas = read_measurements(run / "m.npz")
@@ -150,7 +150,7 @@ def test_mixed_sequences_refused(run):
 def test_partial_run_and_render_truth(run, caplog):
     from dataclasses import replace
 
-    from tracker.io import read_estimates, read_truth, write_estimates
+    from heartcv.tracker.io import read_estimates, read_truth, write_estimates
 
     ge = read_estimates(run / "ge.npz")
     nan_rows = lambda a: np.concatenate([a[:20], np.full_like(a[20:], np.nan)])  # noqa: E731
@@ -164,7 +164,7 @@ def test_partial_run_and_render_truth(run, caplog):
     meta = json.dumps({"format": "heartcv.render_truth", "format_version": 1, "kind": "sequence"}).encode()
     np.savez(run / "render_truth.npz", times=truth["times"], theta=truth["theta"],
              point_positions=truth["positions"], meta_json=np.frombuffer(meta, np.uint8))
-    with caplog.at_level(logging.WARNING, logger="cli.report"):
+    with caplog.at_level(logging.WARNING, logger="heartcv.cli.report"):
         res = _report([run / "ge.partial.npz", run / "kf.npz", "--truth", run / "render_truth.npz", "-o",
                        run / "rep_part", "--json"])
     assert res.exit_code == 0, res.output
@@ -184,7 +184,7 @@ def test_estimate_file_without_filtered_positions(run):
     the one-step predictions' truth error is still reported."""
     from dataclasses import replace
 
-    from tracker.io import read_estimates, read_truth, write_estimates
+    from heartcv.tracker.io import read_estimates, read_truth, write_estimates
 
     kf = read_estimates(run / "kf.npz")
     write_estimates(run / "kf_old.npz", replace(kf, filtered=None))

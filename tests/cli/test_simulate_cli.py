@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from PIL import Image
 from scipy import stats
 
-from cli.main import main
+from heartcv.cli.main import main
 from tests.cli.test_model_track_cli import _write_model as _model
 from tests.conftest import SAMPLES
 
@@ -96,8 +96,8 @@ def test_summary_file_holds_the_json_and_the_file_list(study):
 
 def test_npz_matches_a_direct_run_of_the_estimator(study, paper_model):
     """Run 2 of the study recomputed with run_joint from the documented seeds (independent of tracker.study)."""
-    from tracker.joint import run_joint
-    from tracker.simulate import simulate, to_measurements
+    from heartcv.tracker.joint import run_joint
+    from heartcv.tracker.simulate import simulate, to_measurements
 
     out, _ = study
     data, _ = _load(out)
@@ -134,7 +134,7 @@ def test_two_workers_give_the_same_study_and_a_table(study, tmp_path):
     res = _invoke(["simulate", PAPER, *ARGS, "--workers", "2", "-o", str(out2)])
     assert res.exit_code == 0, res.output
     assert res.stdout == ""
-    assert "cli.simulate" in res.stderr and "ANEES" in res.stderr and "ukf" in res.stderr
+    assert "heartcv.cli.simulate" in res.stderr and "ANEES" in res.stderr and "ukf" in res.stderr
     a, _ = _load(out1)
     b, _ = _load(out2)
     assert set(a) == set(b)
@@ -180,8 +180,8 @@ def test_output_that_is_a_file_exits_2(tmp_path):
 
 
 def test_all_runs_diverged_exits_1_and_writes_nothing(tmp_path, monkeypatch):
-    from tracker import study as st
-    from tracker.tracking import EstimationDiverged
+    from heartcv.tracker import study as st
+    from heartcv.tracker.tracking import EstimationDiverged
 
     def diverge(*a, **k):
         raise EstimationDiverged(3)
@@ -218,7 +218,7 @@ def test_kf_only_study_without_estimated_parameters_replaces_an_old_study(tmp_pa
 
 
 def test_si_scale_of_the_plot_axes():
-    from cli.plots import si_scale
+    from heartcv.cli.plots import si_scale
 
     assert si_scale([1.5e5, 2e3], "Pa") == (1e-3, "kPa")
     assert si_scale([np.nan, 2.5e-4, 0.0], "m") == (1e6, "µm")

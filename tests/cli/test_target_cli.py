@@ -8,7 +8,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 from heartcv.io import read_image, read_target
 from heartcv.targets import TargetSpec
 from tests.conftest import ROOT

@@ -8,14 +8,14 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 from tests.conftest import SAMPLES
-from tracker.io import read_estimates, read_measurements, write_measurements
-from tracker.joint import run_joint
-from tracker.measurements import MeasurementSet
-from tracker.model import build_model
-from tracker.io import read_model
-from tracker.params import NAMES
+from heartcv.tracker.io import read_estimates, read_measurements, write_measurements
+from heartcv.tracker.joint import run_joint
+from heartcv.tracker.measurements import MeasurementSet
+from heartcv.tracker.model import build_model
+from heartcv.tracker.io import read_model
+from heartcv.tracker.params import NAMES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
 

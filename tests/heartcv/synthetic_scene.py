@@ -1,6 +1,6 @@
 """A small synthetic trinocular scene with exact ground truth, for the unit tests of ``heartcv measure``.
 
-Three cameras like the paper's rig (DESIGN.md §7: an equilateral triangle of side 0.5 m, 0.53 m from the surface,
+Three cameras like the paper's rig (docs/design.md §7: an equilateral triangle of side 0.5 m, 0.53 m from the surface,
 converging on it, the paper's distortion), with the intrinsics scaled by ``scale`` (default 1/4: 480x270 images,
 f ~ 1492 px, about 0.36 mm per pixel at the working distance). The surface is a spherical cap (sphere radius
 ``radius_m``, cap radius ``cap_m`` measured in the tangent plane of its apex), apex at the world origin, facing the

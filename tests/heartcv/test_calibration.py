@@ -32,7 +32,7 @@ def _look_at(centre, target=(0.0, 0.0, 0.0)):
 
 
 def paper_rig(n_cam=3, f=5970.0):
-    """The paper's rig (DESIGN.md §7): cameras on an equilateral triangle of side 0.5 m, 0.53 m from the
+    """The paper's rig (docs/design.md §7): cameras on an equilateral triangle of side 0.5 m, 0.53 m from the
     heart, converging on it; slightly different intrinsics and distortion per camera.
     Returns the cameras (rig frame = camera 0) and cam0_from_world."""
     r, wd = 0.5 / np.sqrt(3), 0.53

@@ -89,7 +89,7 @@ def test_from_focal_mm():
     assert round(cam.K[0, 0], 1) == 5972.7
     assert (cam.K[0, 2], cam.K[1, 2]) == (959.5, 539.5)  # image centre, OpenCV pixel-centre convention
     assert np.array_equal(cam.dist, np.zeros(5)) and np.array_equal(cam.cam_from_rig, np.eye(4))
-    # 17.0 cm across 1920 px at the working distance of DESIGN.md 7: about 0.53 m
+    # 17.0 cm across 1920 px at the working distance of docs/design.md 7: about 0.53 m
     assert 0.170 / 1920 * cam.K[0, 0] == pytest.approx(0.529, abs=0.002)
     with pytest.raises(ValueError, match="positive"):
         Camera.from_focal_mm("c", 10, 10, 0, 5e-6)

@@ -214,7 +214,7 @@ def _write_sequence(root, rig):
 def cli_run(frame, tmp_path_factory):
     from click.testing import CliRunner
 
-    from cli.main import main
+    from heartcv.cli.main import main
 
     root = tmp_path_factory.mktemp("hamlyn_cli")
     _write_sequence(root, frame["rig"])
@@ -228,7 +228,7 @@ def cli_run(frame, tmp_path_factory):
 def test_cli_measure_runs_on_the_stereo_frame(cli_run):
     import json
 
-    from tracker.io import read_measurements
+    from heartcv.tracker.io import read_measurements
 
     res, out = cli_run
     assert res.exit_code == 0, res.output
@@ -248,7 +248,7 @@ def test_cli_measure_runs_on_the_stereo_frame(cli_run):
 
 
 def test_cli_measure_acceptance_points(cli_run):
-    from tracker.io import read_measurements
+    from heartcv.tracker.io import read_measurements
 
     res, out = cli_run
     assert res.exit_code == 0, res.output

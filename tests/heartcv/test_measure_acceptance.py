@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 
 pytestmark = pytest.mark.slow
 
@@ -56,7 +56,7 @@ def _measure(tmp, scene, frames, rig_file, csv_file=None):
 
 def test_phantom_sequence_accuracy(tmp_path, rig_file):
     from heartcv.io import read_scene
-    from tracker.io import read_measurements
+    from heartcv.tracker.io import read_measurements
 
     _, s = _measure(tmp_path, PHANTOM / "scene.yaml", 60, rig_file)
     assert s["frames"] == 60 and len(s["cameras"]) == 3

@@ -27,7 +27,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from cli.main import main
+from heartcv.cli.main import main
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENE = ROOT / "sample_sequences" / "phantom" / "scene.yaml"

@@ -20,7 +20,7 @@ def model_file(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def model_config(model_file):
-    from tracker.io import read_model
+    from heartcv.tracker.io import read_model
 
     return read_model(model_file)
 
@@ -40,7 +40,7 @@ def setup(model_config, model_file):
 
 # -- scene file ---------------------------------------------------------------------------------------------------
 def test_default_rig_matches_design():
-    """DESIGN.md §7: three cameras 0.5 m apart on a triangle, f = 35 mm / 5.86 um, 1920x1080, converging on the
+    """docs/design.md §7: three cameras 0.5 m apart on a triangle, f = 35 mm / 5.86 um, 1920x1080, converging on the
     heart 0.53 m from the cameras' plane (about 29 deg off axis); the world frame is camera 0's."""
     scene = scene_from_dict({"motion": {"model": "m.yaml"}})
     rig = build_rig(scene.rig)
@@ -83,7 +83,7 @@ def test_scene_errors_name_the_field(patch, field):
 def test_phantom_is_watertight_and_contains_the_patch():
     from heartcv.render.phantom import build_phantom, locate, surface_points
     from heartcv.render.scene import PhantomSpec
-    from tracker.geometry import PatchGeometry, build_mesh
+    from heartcv.tracker.geometry import PatchGeometry, build_mesh
 
     g = PatchGeometry(grid=(9, 4, 2))
     ph = build_phantom(g, PhantomSpec(mesh_edge_m=0.002))
@@ -110,7 +110,7 @@ def test_surface_motion_is_continuous_at_the_patch_rim(model_config):
     from heartcv.render.motion import surface_motion
     from heartcv.render.phantom import build_phantom
     from heartcv.render.scene import PhantomSpec
-    from tracker.model import build_model
+    from heartcv.tracker.model import build_model
 
     model = build_model(model_config)
     ph = build_phantom(model.mesh.geometry, PhantomSpec(mesh_edge_m=0.002))
@@ -142,7 +142,7 @@ def _static_truth(x):
 def test_truth_equals_the_simulator(setup, model_config):
     """The rendered surface's patch vertices and the model points move exactly as tracker.simulate says, with
     the stiffness following the pressure."""
-    from tracker.simulate import InputSignals, input_signals, simulate
+    from heartcv.tracker.simulate import InputSignals, input_signals, simulate
 
     truth, model, sm = setup.surface.truth, setup.model, setup.surface
     sig = input_signals(model)
@@ -379,7 +379,7 @@ def test_calibration_poses_tilt_and_partial(calib_setup):
 def test_phantom_outside_patch_operator_is_sparse(model_config):
     from heartcv.render.phantom import build_phantom, displacement_operator
     from heartcv.render.scene import PhantomSpec
-    from tracker.model import build_model
+    from heartcv.tracker.model import build_model
 
     model = build_model(model_config)
     ph = build_phantom(model.mesh.geometry, PhantomSpec(mesh_edge_m=0.003))

@@ -26,7 +26,7 @@ def _look_at(centre, target=(0.0, 0.0, 0.0)):
 
 
 def paper_rig(dist=DIST, f=5970.0):
-    """DESIGN.md §7: three cameras on an equilateral triangle of side 0.5 m, 0.53 m from the heart at the
+    """docs/design.md §7: three cameras on an equilateral triangle of side 0.5 m, 0.53 m from the heart at the
     world origin, converging on it. Returns the cameras (rig frame = camera 0) and cam0_from_world."""
     r, wd = 0.5 / np.sqrt(3), 0.53
     h = np.sqrt(wd ** 2 - r ** 2)
@@ -202,7 +202,7 @@ def test_covariance_matches_monte_carlo(rng, no_warnings):
 
 
 def test_predicted_std_at_the_paper_rig(rng, no_warnings):
-    """DESIGN.md §7: triangulation noise alone is about 10-20 um at 0.1 px."""
+    """docs/design.md §7: triangulation noise alone is about 10-20 um at 0.1 px."""
     cams, c0 = paper_rig()
     tri = triangulate(cams, observe(cams, heart_points(c0, rng, 100)), sigma_px=0.1)
     total = np.sqrt(np.trace(tri.covariances, axis1=1, axis2=2))  # sqrt(E|e|^2)

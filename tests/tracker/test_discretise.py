@@ -1,4 +1,4 @@
-"""Time discretisation (spec/model.md §3, §7 items 3-5)."""
+"""Time discretisation (docs/spec/model.md §3, §7 items 3-5)."""
 
 import itertools
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from tracker.discretise import discretise, modal_blocks
+from heartcv.tracker.discretise import discretise, modal_blocks
 
 THETAS = [
     (1050.0, 2.39, 0.003, 150e3, 0.45),   # paper_patch default

@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tracker import inputs as inp
-from tracker.io import read_model
-from tracker.joint import run_joint
-from tracker.model import build_model
-from tracker.simulate import simulate, to_measurements
-from tracker.tracking import run_kalman
+from heartcv.tracker import inputs as inp
+from heartcv.tracker.io import read_model
+from heartcv.tracker.joint import run_joint
+from heartcv.tracker.model import build_model
+from heartcv.tracker.simulate import simulate, to_measurements
+from heartcv.tracker.tracking import run_kalman
 
 from tests.conftest import SAMPLES
 
@@ -98,7 +98,7 @@ def test_stiffness_cycle_ge_beats_the_best_constant_kf():
 def test_paper_simulation_fig2_claim():
     """The paper's Fig. 2 on paper_simulation.yaml: 50 runs x 100 steps, all five parameters estimated; the GE's
     RMSE of E and of rho at step 100 is at most 10 % of the initial RMSE (measured: 1.3 % and 1.6 %)."""
-    from tracker.study import run_study
+    from heartcv.tracker.study import run_study
 
     m = build_model(read_model(SAMPLES / "paper_simulation.yaml"))
     study = run_study(m, runs=50, steps=100, seed=0, estimators=("ge",), workers=2)

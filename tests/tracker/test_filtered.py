@@ -7,12 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tracker import metrics as tm
-from tracker.io import read_estimates, write_estimates
-from tracker.joint import ESTIMATORS, run_joint
-from tracker.measurements import MeasurementSet
-from tracker.simulate import simulate, to_measurements
-from tracker.tracking import EstimationDiverged, locate_points, run_kalman
+from heartcv.tracker import metrics as tm
+from heartcv.tracker.io import read_estimates, write_estimates
+from heartcv.tracker.joint import ESTIMATORS, run_joint
+from heartcv.tracker.measurements import MeasurementSet
+from heartcv.tracker.simulate import simulate, to_measurements
+from heartcv.tracker.tracking import EstimationDiverged, locate_points, run_kalman
 
 
 def _reconstructed(model, meas, state_mean):

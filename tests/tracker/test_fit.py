@@ -7,13 +7,13 @@ import pytest
 from scipy import stats
 
 from tests.conftest import load_yaml
-from tracker.config import model_config_from_dict
-from tracker.fit import FitProblem, FitResult, _theta_of, fit, tracking_prior
-from tracker.io import FileFormatError, read_parameters, write_parameters
-from tracker.measurements import MeasurementSet
-from tracker.model import build_model
-from tracker.params import NAMES
-from tracker.simulate import simulate, to_measurements
+from heartcv.tracker.config import model_config_from_dict
+from heartcv.tracker.fit import FitProblem, FitResult, _theta_of, fit, tracking_prior
+from heartcv.tracker.io import FileFormatError, read_parameters, write_parameters
+from heartcv.tracker.measurements import MeasurementSet
+from heartcv.tracker.model import build_model
+from heartcv.tracker.params import NAMES
+from heartcv.tracker.simulate import simulate, to_measurements
 
 
 def _model(name, **changes):
@@ -67,7 +67,7 @@ def test_recovers_all_five_parameters_of_a_model_simulate_file(sim_model, seed):
     z = (res.theta - truth) / res.theta_std
     assert np.abs(z).max() < 3.5, z
     assert 0 <= prob.chi2(truth) - 2 * res.cost < stats.chi2.ppf(0.999, 5)
-    # E and nu to better than 1 %, rho to 1 % (the dynamic regime makes rho observable, spec/model.md §4.3)
+    # E and nu to better than 1 %, rho to 1 % (the dynamic regime makes rho observable, docs/spec/model.md §4.3)
     assert np.abs(res.theta[[0, 3, 4]] / truth[[0, 3, 4]] - 1).max() < 0.01
     assert 0.9 < res.reduced_chi2 < 1.1
     assert res.frames == 91 and res.points == 14 and res.observations == 91 * 14
@@ -341,7 +341,7 @@ def test_undeformed_references_recover_the_true_offsets_from_birth_frame_referen
     frames (sigma / sqrt(K) per coordinate), while the birth-frame position is off by the static deformation."""
     import dataclasses
 
-    from tracker.fit import undeformed_references
+    from heartcv.tracker.fit import undeformed_references
 
     sim, meas = _noise_only(paper_model, 1.0, 11)
     assert not np.any(meas.translation())                 # paper_patch: no respiration
@@ -393,7 +393,7 @@ def test_cluster_robust_covariance_covers_errors_correlated_along_a_track():
     track) while the file claims independent noise: over 24 seeds the spread of the fitted E and nu matches the
     cluster-robust standard deviation the fit reports (>= ROBUST_MIN_POINTS points), and is about twice the
     model covariance (J^T J)^-1 (scaled by the reduced chi-square), which assumes independent residuals."""
-    from tracker.fit import ROBUST_MIN_POINTS
+    from heartcv.tracker.fit import ROBUST_MIN_POINTS
 
     model = _model("paper_patch.yaml", observation__points={"grid": [7, 5]}, observation__margin=0.1)
     est, sd_robust, sd_model = [], [], []

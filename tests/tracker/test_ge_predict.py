@@ -1,11 +1,11 @@
-"""GE prediction (spec/estimator.md §2.5 worked check, §8 items 3-4, 9)."""
+"""GE prediction (docs/spec/estimator.md §2.5 worked check, §8 items 3-4, 9)."""
 
 import numpy as np
 import pytest
 
-from tracker.ge import ge_predict
-from tracker.kalman import GaussianState, predict
-from tracker.sampling import sample
+from heartcv.tracker.ge import ge_predict
+from heartcv.tracker.kalman import GaussianState, predict
+from heartcv.tracker.sampling import sample
 
 DT = 0.05
 MU = np.array([4.0, 0.5, 1.0, 0.0])

@@ -1,4 +1,4 @@
-"""Geometry map and FE assembly (spec/model.md §2, §7 items 1-2)."""
+"""Geometry map and FE assembly (docs/spec/model.md §2, §7 items 1-2)."""
 
 import math
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from tracker.fem import ONE_POINT_HEX, assemble
-from tracker.geometry import PatchGeometry, build_mesh
+from heartcv.tracker.fem import ONE_POINT_HEX, assemble
+from heartcv.tracker.geometry import PatchGeometry, build_mesh
 
 
 @pytest.mark.parametrize("geom", [PatchGeometry(), PatchGeometry(radius_long=math.inf, radius_circ=math.inf),
@@ -104,7 +104,7 @@ def test_pressure_load_is_resultant_on_projected_area():
 
 def _static_max_deflection(grid, nu, sri=True, E=30e3, p=1000.0):
     import scipy.sparse.linalg as spla
-    from tracker.params import lame
+    from heartcv.tracker.params import lame
 
     mesh = build_mesh(PatchGeometry(grid=grid))
     fe = assemble(mesh)

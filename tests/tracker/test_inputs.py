@@ -8,8 +8,8 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 from scipy.special import ndtr
 
-from tracker import inputs
-from tracker.inputs import (
+from heartcv.tracker import inputs
+from heartcv.tracker.inputs import (
     MMHG_TO_PA,
     LVParams,
     active_tension,

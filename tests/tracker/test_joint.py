@@ -1,4 +1,4 @@
-"""Joint state and parameter estimators (tracker/joint.py: GE, joint UKF, joint EKF; spec/estimator.md §2, §4,
+"""Joint state and parameter estimators (tracker/joint.py: GE, joint UKF, joint EKF; docs/spec/estimator.md §2, §4,
 §5, §8 items 3, 9, 10).
 
 Reference computations are independent of the code under test: the Kalman prediction of the joint state
@@ -16,18 +16,18 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from tracker.config import model_config_from_dict
-from tracker.ge import ge_predict, ge_predict_family
-from tracker.io import read_estimates, write_estimates
-from tracker.joint import ESTIMATORS, JointFilter, JointOptions, joint_prior, run_joint
-from tracker.kalman import GaussianState, predict, update
-from tracker.measurements import MeasurementSet
-from tracker.model import build_model
-from tracker.sampling import sample
-from tracker.simulate import simulate, to_measurements
-from tracker.tracking import EstimationDiverged, locate_points, run_kalman
-from tracker.transition import TransitionFamily
-from tracker.truncation import truncate_box
+from heartcv.tracker.config import model_config_from_dict
+from heartcv.tracker.ge import ge_predict, ge_predict_family
+from heartcv.tracker.io import read_estimates, write_estimates
+from heartcv.tracker.joint import ESTIMATORS, JointFilter, JointOptions, joint_prior, run_joint
+from heartcv.tracker.kalman import GaussianState, predict, update
+from heartcv.tracker.measurements import MeasurementSet
+from heartcv.tracker.model import build_model
+from heartcv.tracker.sampling import sample
+from heartcv.tracker.simulate import simulate, to_measurements
+from heartcv.tracker.tracking import EstimationDiverged, locate_points, run_kalman
+from heartcv.tracker.transition import TransitionFamily
+from heartcv.tracker.truncation import truncate_box
 
 from .lg_checker import LGProblem, check_estimator, make_problem
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from tracker.kalman import GaussianState, UpdateResult, cholesky_psd, predict, symmetrise, update
+from heartcv.tracker.kalman import GaussianState, UpdateResult, cholesky_psd, predict, symmetrise, update
 
 from .lg_checker import batch_posterior, check_estimator, make_problem
 
-# spec/estimator.md §4 test vector
+# docs/spec/estimator.md §4 test vector
 MU = np.array([4.0, 1.0, -0.188])
 C = np.array([[0.25, 0.05, -0.02], [0.05, 0.10, 0.006], [-0.02, 0.006, 0.19]])
 H = np.array([[0.0, 1.0, 0.0]])

@@ -1,13 +1,13 @@
-"""tracker.metrics: exact values on tiny hand-made estimate sets, chi-square bands against scipy.stats, truth
+"""heartcv.tracker.metrics: exact values on tiny hand-made estimate sets, chi-square bands against scipy.stats, truth
 errors, partial runs and the sequence comparison."""
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from tracker import metrics as tm
-from tracker.measurements import EstimateSet
-from tracker.params import NAMES
+from heartcv.tracker import metrics as tm
+from heartcv.tracker.measurements import EstimateSet
+from heartcv.tracker.params import NAMES
 
 NAN = np.nan
 
@@ -134,7 +134,7 @@ def test_nis_bands_against_scipy():
     band = tm.nis_mean_band([42, 39, 42])
     assert band == pytest.approx((stats.chi2.ppf(0.025, 123) / 3, stats.chi2.ppf(0.975, 123) / 3), rel=1e-12)
     # equals the study's chi2_band for a constant dof
-    from tracker.study import chi2_band
+    from heartcv.tracker.study import chi2_band
 
     assert tm.nis_mean_band([6] * 5) == pytest.approx(chi2_band(5, 6), rel=1e-12)
     with pytest.raises(ValueError, match="dof >= 1"):

@@ -1,12 +1,12 @@
-"""Assembled model: counts, invariances, lifting, measurement matrix, reduced basis (spec/model.md §7)."""
+"""Assembled model: counts, invariances, lifting, measurement matrix, reduced basis (docs/spec/model.md §7)."""
 
 import copy
 
 import numpy as np
 import pytest
 
-from tracker.config import model_config_from_dict
-from tracker.model import build_model
+from heartcv.tracker.config import model_config_from_dict
+from heartcv.tracker.model import build_model
 
 
 def test_paper_counts(paper_model):
@@ -92,7 +92,7 @@ def test_reduced_basis_matches_full_model(paper_dict, nu, tol):
     assert red.r < 15 and full.r == 3 * 11 * 7 * 3
     Mr = red.M0
     assert np.abs(Mr / red.fe.volume - np.eye(red.r)).max() < 1e-9  # V^T M0 V = vol I
-    from tracker import inputs as inp
+    from heartcv.tracker import inputs as inp
 
     t = np.arange(61) / 30.0
     u = inp.lv_pressure(t)[:, None]
@@ -139,7 +139,7 @@ def test_integrated_noise_stiff_and_plain_van_loan():
     mild system: equals the plain one-shot Van Loan formula."""
     import scipy.linalg as sla
 
-    from tracker.model import integrated_noise
+    from heartcv.tracker.model import integrated_noise
 
     Fc = np.array([[0.0, 1.0], [-4e8, -1e5]])  # eigenvalues about -4.2e3 and -9.6e4 1/s
     Qc = np.diag([0.0, 3.0])

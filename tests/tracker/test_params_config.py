@@ -1,12 +1,12 @@
-"""Parameter coordinates (spec/model.md §4.2) and model-file validation."""
+"""Parameter coordinates (docs/spec/model.md §4.2) and model-file validation."""
 
 import copy
 
 import numpy as np
 import pytest
 
-from tracker.config import ConfigError, model_config_from_dict
-from tracker.params import NAMES, ParameterSpace, lame, nu_from_s, s_from_nu
+from heartcv.tracker.config import ConfigError, model_config_from_dict
+from heartcv.tracker.params import NAMES, ParameterSpace, lame, nu_from_s, s_from_nu
 
 
 def test_s_reference_points():

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tracker.measurements import MeasurementSet
-from tracker.registration import Registration, register, to_patch_frame
-from tracker.simulate import simulate
-from tracker.tracking import locate_points, run_kalman
+from heartcv.tracker.measurements import MeasurementSet
+from heartcv.tracker.registration import Registration, register, to_patch_frame
+from heartcv.tracker.simulate import simulate
+from heartcv.tracker.tracking import locate_points, run_kalman
 
 SIGMA = 1e-4  # m, the paper model's measurement noise
 HALF_TURN = np.diag([-1.0, 1.0, -1.0, 1.0])
@@ -67,7 +67,7 @@ def scene(model, rng, *, duration=0.5, surround=True, outliers=20, missing=0.1, 
     pts = np.stack([S.ravel(), Tt.ravel(), np.zeros(S.size)], axis=1)
     kw = {}
     if no_input:
-        from tracker.simulate import InputSignals
+        from heartcv.tracker.simulate import InputSignals
 
         kw["signals"] = InputSignals(("pressure",), lambda tt: np.zeros((np.size(tt), 1)), None)
     sim = simulate(model, duration, rng, points=pts, process_noise=False, initial_noise=False, **kw)
@@ -291,8 +291,8 @@ def test_phantom_measurement_against_the_render_truth():
     """`heartcv measure` output of the rendered phantom (calibrated rig ~ camera 0, which differs from the
     truth's camera 0 by ~0.015 deg / 0.1 mm): the automatic registration against world_from_patch."""
     from heartcv.io import read_render_truth
-    from tracker.io import read_measurements, read_model
-    from tracker.model import build_model
+    from heartcv.tracker.io import read_measurements, read_model
+    from heartcv.tracker.model import build_model
 
     root = Path(__file__).resolve().parents[2]
     meas = read_measurements(PHANTOM / "meas.npz")

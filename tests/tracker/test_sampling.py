@@ -1,4 +1,4 @@
-"""Tests of tracker.sampling: spec/estimator.md §1 tables, exact moments of A/B (§1.5, §8 items 1-2), variant U,
+"""Tests of tracker.sampling: docs/spec/estimator.md §1 tables, exact moments of A/B (§1.5, §8 items 1-2), variant U,
 clipping (§1.4) and validation."""
 
 import dataclasses
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from tracker.sampling import SampleSet, cross_moment, cvm_nodes, cvm_variance, moments, sample
+from heartcv.tracker.sampling import SampleSet, cross_moment, cvm_nodes, cvm_variance, moments, sample
 
 SQRTS = ("correlation", "eigen", "cholesky")
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from tracker.simulate import simulate, to_measurements
-from tracker.tracking import locate_points, run_kalman
+from heartcv.tracker.simulate import simulate, to_measurements
+from heartcv.tracker.tracking import locate_points, run_kalman
 
 
 def test_simulation_without_noise_follows_the_discrete_model(paper_model):
@@ -100,7 +100,7 @@ def test_wrong_theta_is_inconsistent(paper_model):
 
 def test_points_off_the_patch_are_dropped(paper_model):
     _, meas = _meas(paper_model, 1, duration=0.5)
-    from tracker.measurements import MeasurementSet
+    from heartcv.tracker.measurements import MeasurementSet
 
     ref = meas.reference.copy()
     ref[0] += [0.2, 0, 0]  # 20 cm away

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from tracker import study as st
-from tracker.joint import run_joint
-from tracker.simulate import simulate, to_measurements
-from tracker.tracking import EstimationDiverged, run_kalman
+from heartcv.tracker import study as st
+from heartcv.tracker.joint import run_joint
+from heartcv.tracker.simulate import simulate, to_measurements
+from heartcv.tracker.tracking import EstimationDiverged, run_kalman
 
 
 # -- chi-square band ------------------------------------------------------------------------------
@@ -199,16 +199,16 @@ def test_a_worker_model_that_differs_is_reported(paper_model, monkeypatch, caplo
     import dataclasses
     import multiprocessing
 
-    import tracker.model
+    import heartcv.tracker.model as tracker_model
 
     if multiprocessing.get_start_method() != "fork":
         pytest.skip("needs fork: the patched build must reach the worker processes")
-    real = tracker.model.build_model
-    monkeypatch.setattr(tracker.model, "build_model",
+    real = tracker_model.build_model
+    monkeypatch.setattr(tracker_model, "build_model",
                         lambda cfg: dataclasses.replace(real(cfg), loads=real(cfg).loads * (1 + 1e-12)))
     st.run_study(paper_model, runs=2, steps=3, estimators=("kf",), workers=2)
     assert "differs from this process's" in caplog.text
     caplog.clear()
-    monkeypatch.setattr(tracker.model, "build_model", real)
+    monkeypatch.setattr(tracker_model, "build_model", real)
     st.run_study(paper_model, runs=2, steps=3, estimators=("kf",), workers=2)
     assert "differs" not in caplog.text

@@ -1,4 +1,4 @@
-"""Tests of tracker.truncation against spec/estimator.md §3 (items 5-7 of §8): 1-D moments table, rank-1 update,
+"""Tests of tracker.truncation against docs/spec/estimator.md §3 (items 5-7 of §8): 1-D moments table, rank-1 update,
 truncate-then-lift identity, lift vector, uncorrelated/2-D/3-D examples, low mass, validation."""
 
 import dataclasses
@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 from scipy.integrate import quad
 
-from tracker.truncation import TruncationResult, truncate_box, truncate_linear, truncnorm_moments
+from heartcv.tracker.truncation import TruncationResult, truncate_box, truncate_linear, truncnorm_moments
 
 INF = np.inf
 
@@ -278,7 +278,7 @@ def test_posterior_covariance_symmetric_and_pd():
 def test_low_mass_box_far_in_the_tail(caplog):
     mu = np.array([0.0, 0.0, 1.0])
     C = np.array([[1.0, 0.3, 0.2], [0.3, 2.0, 0.1], [0.2, 0.1, 1.5]])
-    with caplog.at_level(logging.WARNING, logger="tracker.truncation"):
+    with caplog.at_level(logging.WARNING, logger="heartcv.tracker.truncation"):
         res = truncate_box(mu, C, [40.0, -INF], [41.0, INF], 2)
     assert res.low_mass == 1 and res.events == 1
     assert "box mass" in caplog.text
@@ -383,7 +383,7 @@ def test_tallis_lifts_the_kinematic_block():
 
 def test_tallis_falls_back_to_sequential_at_tiny_mass(caplog):
     args = ([0.0, 0.0], [[1.0, 0.5], [0.5, 1.0]], [30.0, 30.0], [31.0, 31.0], 2)
-    with caplog.at_level(logging.WARNING, logger="tracker.truncation"):
+    with caplog.at_level(logging.WARNING, logger="heartcv.tracker.truncation"):
         res = truncate_box(*args, method="tallis")
     assert res.method == "sequential" and res.low_mass > 0 and "Tallis" in caplog.text
     seq = truncate_box(*args)
