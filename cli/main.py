@@ -1,11 +1,23 @@
-"""The ``heartcv`` command group: verbosity and logging to stderr; commands are registered lazily."""
+"""The ``heartcv`` command group: verbosity and logging to stderr, commands registered lazily, and the one place
+where errors become exit codes (docs/cli.md §1.3):
+
+- :class:`heartcv.tracker.files.InputError` (input that failed validation; it names the file and the field) -> exit 2;
+- click's own exceptions (usage errors exit 2, :class:`~heartcv.cli.options.StageFailed` exit 1) pass through;
+- anything else is a bug in heartcv: one line says so (exit 1), the traceback follows with ``-v``.
+"""
 
 from __future__ import annotations
 
 import importlib
 import logging
+import sys
+import traceback
 
 import click
+
+from heartcv.tracker.files import InputError
+
+log = logging.getLogger("heartcv")
 
 # command name -> "module:attribute"; modules are imported only when the command runs (fast --help)
 COMMANDS = {
@@ -31,6 +43,46 @@ class LazyGroup(click.Group):
         module, attr = COMMANDS[name].split(":")
         return getattr(importlib.import_module(module), attr)
 
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except InputError as exc:
+            raise _InputRefused(str(exc)) from None
+        except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort, KeyboardInterrupt,
+                SystemExit):
+            raise
+        except Exception as exc:  # noqa: BLE001 - the one place that reports bugs (docs/cli.md §1.3)
+            verbosity = (ctx.obj or {}).get("verbosity", 0)
+            raise InternalError(exc, verbosity) from None
+
+
+class _InputRefused(click.ClickException):
+    exit_code = 2
+
+    def show(self, file=None):
+        click.echo(f"Error: {self.format_message()}", err=True)
+
+
+class InternalError(click.ClickException):
+    """An unexpected exception: a bug in heartcv, never blamed on the user's input (exit 1)."""
+
+    exit_code = 1
+
+    def __init__(self, exc: BaseException, verbosity: int):
+        where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+        at = f" at {where.filename.rsplit('/', 1)[-1]}:{where.lineno}" if where else ""
+        first = (str(exc).splitlines() or [""])[0][:300]
+        super().__init__(f"internal error: {type(exc).__name__}{at}: {first} -- this is a bug in heartcv, not a "
+                         "problem with your input; please report it"
+                         + ("" if verbosity > 0 else " (run with -v for the traceback)"))
+        self.exc = exc
+        self.verbosity = verbosity
+
+    def show(self, file=None):
+        if self.verbosity > 0:
+            traceback.print_exception(type(self.exc), self.exc, self.exc.__traceback__, file=sys.stderr)
+        click.echo(f"Error: {self.format_message()}", err=True)
+
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-v", "--verbose", count=True, help="More log output (repeatable).")
@@ -44,7 +96,9 @@ def main(ctx, verbose, quiet):
     ukf, ekf), `fit`, `report`, `simulate` (Monte-Carlo study of the estimators). Logs go to stderr; --json summaries to stdout.
     """
     verbosity = verbose - quiet
-    logging.basicConfig(level=max(10, 30 - 10 * verbosity), format="%(levelname)s %(name)s: %(message)s",
+    # INFO by default: a stage's summary line is INFO, WARNING is kept for what the user should act on; -q
+    # leaves warnings only, -qq errors only, -v adds debug output.
+    logging.basicConfig(level=min(40, max(10, 20 - 10 * verbosity)), format="%(levelname)s %(name)s: %(message)s",
                         force=True)
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = verbosity

@@ -1,20 +1,89 @@
-"""Shared options, value handlers and error types of the command-line interface.
+"""Shared options, value types, output guards and error types of the command-line interface.
 
-Exit codes (docs/design.md §1): 0 ok, 1 the stage failed (did not converge, diverged), 2 bad usage or bad input.
+Exit codes (docs/cli.md §1.3): 0 ok; 1 the stage failed on valid input (did not converge, diverged) or an
+internal error (a bug: one line says so, ``-v`` shows the traceback); 2 bad usage or input that failed validation
+(the message names the file and the field, or the option).
 
 Shared options: ``json_opt`` (--json: machine-readable summary on stdout), ``seed_opt`` (--seed),
-``output_opt`` (-o/--output). Used by: model info/simulate, track.
+``output_opt`` (-o/--output). Value types: :class:`Float` (finite, bounded), :func:`Int` (bounded).
+Output safety: :func:`guard_outputs` (before any work).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 import click
 
+from heartcv.tracker.files import InputError, check_output_file, check_output_folder, refuse_overlap
+
+# Upper bounds of counts and sizes that no real run needs and that would exhaust the machine (docs/cli.md §1.4)
+MAX_SEED = 2**63 - 1
+MAX_COUNT = 10**6          # runs, steps, frames, starts, workers...
+MAX_IMAGE_SIDE = 16384     # pixels
+
+
+class Float(click.ParamType):
+    """A finite float in ``[lo, hi]`` (open ends with ``lo_open``/``hi_open``); NaN and infinities are refused,
+    which click.FloatRange lets through."""
+
+    name = "float"
+
+    def __init__(self, lo=None, hi=None, lo_open=False, hi_open=False):
+        self.lo, self.hi, self.lo_open, self.hi_open = lo, hi, lo_open, hi_open
+
+    def convert(self, value, param, ctx):
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"{value!r}: a finite number expected", param, ctx)
+        lo_bad = self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo)
+        hi_bad = self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi)
+        if lo_bad or hi_bad:
+            self.fail(f"{v:g} is not in the range {self._range()}", param, ctx)
+        return v
+
+    def _range(self) -> str:
+        lo = "-inf" if self.lo is None else f"{self.lo:g}"
+        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        return f"{'(' if self.lo_open or self.lo is None else '['}{lo}, {hi}{')' if self.hi_open or self.hi is None else ']'}"
+
+    def get_metavar(self, param, ctx=None):
+        return f"FLOAT {self._range()}"
+
+
+def Int(lo=0, hi=MAX_COUNT):  # noqa: N802 - reads like a type
+    """An integer in ``[lo, hi]`` (both bounds always set: no option takes an unbounded count)."""
+    return click.IntRange(min=lo, max=hi)
+
+
+def guard_outputs(outputs: dict, inputs: dict, *, files=(), folders=()) -> None:
+    """Refuse, before any work, outputs that equal or contain an input (:func:`refuse_overlap`), output files that
+    hold something heartcv did not write, and output folders that another stage (or a person) made.
+
+    Parameters
+    ----------
+    outputs, inputs : dict of {label: path or None}
+        Labels are the option or argument names the messages show (``"-o/--output"``, ``"MEASUREMENTS"``).
+    files : iterable of (label, path)
+        Output files to check with :func:`check_output_file`.
+    folders : iterable of (label, path, producer)
+        Output folders that ``producer`` replaces as a whole (:func:`check_output_folder`).
+    """
+    refuse_overlap(outputs, inputs)
+    for label, path in files:
+        if path is not None:
+            check_output_file(path, label)
+    for label, path, producer in folders:
+        if path is not None:
+            check_output_folder(path, producer, label)
+
 json_opt = click.option("--json", "as_json", is_flag=True, help="Print a machine-readable summary on stdout.")
-seed_opt = click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+seed_opt = click.option("--seed", type=Int(0, MAX_SEED), default=0, show_default=True,
                         help="Seed of the random generator (numpy.random.default_rng).")
 
 
@@ -24,7 +93,8 @@ def output_opt(help_text="Output file."):
 
 
 class BadInput(click.ClickException):
-    """Bad input data or file: exit 2."""
+    """Bad usage that click cannot see (options that do not go together): exit 2. Input files that fail
+    validation raise :class:`heartcv.tracker.files.InputError`, which the command group turns into this."""
 
     exit_code = 2
 
@@ -57,18 +127,11 @@ def _default(o):
 
 
 def load_model(path):
-    """Read and build a model file, turning input errors into exit 2."""
-    from heartcv.tracker.config import ConfigError
-    from heartcv.tracker.io import FileFormatError, read_model
+    """Read, validate and build a model file (InputError naming the file and field -> exit 2)."""
+    from heartcv.tracker.io import read_model
     from heartcv.tracker.model import build_model
 
-    try:
-        cfg = read_model(path)
-        return build_model(cfg)
-    except (ConfigError, FileFormatError) as exc:
-        raise BadInput(str(exc)) from None
-    except ValueError as exc:
-        raise BadInput(f"{path}: {exc}") from None
+    return build_model(read_model(path))
 
 
 def progress(iterable, label, length=None, verbosity=0):

@@ -3,10 +3,10 @@
 All reading and writing of ``heartcv/`` happens here, called from ``cli/`` (docs/style.md: pure cores, I/O at the
 edge). Formats are documented in ``docs/formats.md``. Conventions:
 
-- Every write is atomic (:func:`atomic_path`): a temporary file beside the destination, renamed over it only
-  once it is complete.
-- Every problem with an input file raises :class:`HeartcvIOError` (a ``ValueError``) whose message starts with
-  the file's path; ``cli/`` turns it into exit code 2.
+- Built on :mod:`heartcv.tracker.files`, the one file-handling foundation (atomic writes, hashes, safe YAML and
+  ``.npz`` reading with limits, output safety). Every write is atomic.
+- Every problem with an input file raises :class:`~heartcv.tracker.files.InputError` (exported here under its old
+  name :data:`HeartcvIOError`) naming the file and the field; the command line turns it into exit code 2.
 - YAML files are written so that both a YAML library (PyYAML ``safe_load``) and OpenCV's ``cv2.FileStorage``
   read them (:func:`dump_yaml`); floats are written with Python's ``repr`` and read back exactly.
 
@@ -16,19 +16,32 @@ append their own clearly delimited sections at the end.
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
-import hashlib
 import os
 from pathlib import Path
 import re
-import tempfile
 
 import numpy as np
 
 from . import __version__
 from .camera import Camera, Rig
 from .targets import INCH_M, TargetSpec
+from .tracker.files import (
+    ArraySpec,
+    InputError,
+    atomic_path,
+    check_format,
+    dump_yaml,
+    file_hash,
+    get_field,
+    get_matrix,
+    plain,
+    read_csv_table,
+    read_npz,
+    write_npz,
+    write_yaml,
+)
+from .tracker.files import read_yaml as _read_yaml
 
 __all__ = [
     "HeartcvIOError", "atomic_path", "file_hash", "dump_yaml", "read_yaml", "write_yaml",
@@ -42,135 +55,20 @@ __all__ = [
 
 
 # =====================================================================================================================
-# Common: errors, hashes, atomic writes, YAML
+# Common: the foundation (heartcv.tracker.files) under the names this module has always exported
 # =====================================================================================================================
-class HeartcvIOError(ValueError):
-    """A file is missing, unreadable, corrupt or not of the expected format; ``path`` names it."""
-
-    def __init__(self, path, message):
-        super().__init__(f"{path}: {message}")
-        self.path = str(path)
-
-
-def file_hash(path) -> str:
-    """``sha256:<hex>`` of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return "sha256:" + h.hexdigest()
-
-
-@contextlib.contextmanager
-def atomic_path(path, suffix=None):
-    """Yield a temporary path beside ``path``; rename it over ``path`` only if the block succeeds.
-
-    The temporary name is ``.<name>.<random><suffix>`` (hidden, so :func:`list_image_folder` never lists it);
-    missing parent folders are created; the final file gets the ordinary permissions of the umask.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def _plain(obj):
-    """numpy scalars/arrays, tuples and paths -> plain Python (YAML-safe) values."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.floating):
-        return float(obj)
-    if isinstance(obj, Path):
-        return str(obj)
-    if obj is None or isinstance(obj, (bool, int, float, str)):
-        return obj
-    raise TypeError(f"not representable in YAML: {type(obj).__name__}")
-
-
-def _yaml_dumper():
-    import yaml
-
-    class Dumper(yaml.SafeDumper):
-        # OpenCV's YAML parser (cv2.FileStorage) needs sequences inside mappings to be indented
-        def increase_indent(self, flow=False, indentless=False):
-            return super().increase_indent(flow, False)
-
-    def represent_str(dumper, s):
-        # cv2.FileStorage misreads plain scalars that start like a number ('0.1.0'): quote them
-        style = "'" if s[:1] and (s[0].isdigit() or s[0] in "+-.") else None
-        return dumper.represent_scalar("tag:yaml.org,2002:str", s, style=style)
-
-    Dumper.add_representer(str, represent_str)
-    return Dumper
-
-
-def dump_yaml(data: dict, header: str | None = None) -> str:
-    """YAML text of plain data readable by PyYAML and by ``cv2.FileStorage``.
-
-    Mappings keep their order; lists of scalars are written in flow style (``[1.0, 2.0]``), lists of lists as
-    indented block sequences of flow rows (a 3x3 matrix is three ``- [a, b, c]`` lines); floats use ``repr``
-    (exact round trip); strings that start like a number are quoted. ``header`` lines become ``#`` comments.
-    """
-    import yaml
-
-    text = yaml.dump(_plain(data), Dumper=_yaml_dumper(), sort_keys=False, default_flow_style=None, width=110,
-                     allow_unicode=True)
-    if header:
-        text = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines()) + text
-    return text
-
-
-def write_yaml(path, data: dict, header: str | None = None) -> None:
-    """Write :func:`dump_yaml` text atomically."""
-    text = dump_yaml(data, header)
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+#: The error of every reader: heartcv's one error type for input that failed validation (file and field)
+HeartcvIOError = InputError
+_plain = plain
 
 
 def read_yaml(path, what: str = "YAML file"):
-    """Parse a YAML file; HeartcvIOError for a missing, unreadable or invalid file."""
-    import yaml
-
-    path = Path(path)
-    if not path.is_file():
-        raise HeartcvIOError(path, f"no such {what}" if not path.exists() else f"not a file ({what} expected)")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise HeartcvIOError(path, f"cannot read {what} ({exc})") from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise HeartcvIOError(path, f"not valid YAML: {exc}") from None
+    """Parse a YAML file with the foundation's limits (:func:`heartcv.tracker.files.read_yaml`)."""
+    return _read_yaml(path, what)
 
 
 def _check_format(path, d, fmt, required=False):
-    if not isinstance(d, dict):
-        raise HeartcvIOError(path, f"a YAML mapping expected ({fmt[0]} file), got {type(d).__name__}")
-    if required and "format" not in d:
-        raise HeartcvIOError(path, f"no 'format' key: not a {fmt[0]} file")
-    if d.get("format", fmt[0]) != fmt[0]:
-        raise HeartcvIOError(path, f"format {fmt[0]!r} expected, got {d.get('format')!r}")
-    if d.get("format_version", fmt[1]) != fmt[1]:
-        raise HeartcvIOError(path, f"format_version: {fmt[1]} supported, got {d.get('format_version')!r}")
+    check_format(path, d, fmt, required)
 
 
 # =====================================================================================================================
@@ -287,10 +185,12 @@ def write_board_image(png_path, pdf_path, image: np.ndarray, dpi: float, size_m)
     if abs(image.shape[1] - w_m * px_per_m) > 0.5 or abs(image.shape[0] - h_m * px_per_m) > 0.5:
         raise ValueError(f"image of {image.shape[1]}x{image.shape[0]} px is not {w_m} x {h_m} m at {dpi} dpi")
     if png_path is not None:
-        from PIL import Image
+        from PIL import Image, PngImagePlugin
 
+        info = PngImagePlugin.PngInfo()
+        info.add_text("Software", f"heartcv {__version__}")  # marks the file as heartcv's (is_heartcv_file)
         with atomic_path(png_path, suffix=".png") as tmp:
-            Image.fromarray(image).save(tmp, format="PNG", dpi=(dpi, dpi), optimize=True)
+            Image.fromarray(image).save(tmp, format="PNG", dpi=(dpi, dpi), optimize=True, pnginfo=info)
     if pdf_path is not None:
         from matplotlib.figure import Figure
 
@@ -340,10 +240,10 @@ def read_target(path) -> TargetSpec:
     d = read_yaml(path, "target file")
     _check_format(path, d, TARGET_FORMAT)
     if "image" in d and not isinstance(d["image"], dict):
-        raise HeartcvIOError(path, "image: a mapping expected")
+        raise HeartcvIOError(path, "a mapping expected", "image")
     try:
         return TargetSpec.from_dict(d)
-    except ValueError as exc:
+    except ValueError as exc:  # TargetSpec's checks of the values it is given (InputError or ValueError)
         raise HeartcvIOError(path, str(exc)) from None
 
 
@@ -394,38 +294,41 @@ def rig_to_dict(rig: Rig) -> dict:
 def rig_from_dict(d: dict) -> Rig:
     """Inverse of :func:`rig_to_dict`; ValueError naming the bad field. ``baselines_m`` is ignored (derived)."""
     if not isinstance(d, dict):
-        raise ValueError("rig: a mapping expected")
+        raise InputError(None, "rig: a mapping expected")
     if d.get("format", RIG_FORMAT[0]) != RIG_FORMAT[0]:
-        raise ValueError(f"format: {RIG_FORMAT[0]!r} expected, got {d.get('format')!r}")
+        raise InputError(None, f"format: {RIG_FORMAT[0]!r} expected, got {d.get('format')!r}")
     if d.get("format_version", RIG_FORMAT[1]) != RIG_FORMAT[1]:
-        raise ValueError(f"format_version: {RIG_FORMAT[1]} supported, got {d.get('format_version')!r}")
+        raise InputError(None, f"format_version: {RIG_FORMAT[1]} supported, got {d.get('format_version')!r}")
     entries = d.get("cameras")
     if not isinstance(entries, list) or not entries:
-        raise ValueError("cameras: a non-empty list of cameras expected")
+        raise InputError(None, "cameras: a non-empty list of cameras expected")
     cameras, cam_meta = [], {}
     for i, e in enumerate(entries):
         where = f"cameras[{i}]"
         if not isinstance(e, dict):
-            raise ValueError(f"{where}: a mapping expected")
+            raise InputError(None, f"{where}: a mapping expected")
         missing = [k for k in ("name", "image_size", "K", "dist", "cam_from_rig") if k not in e]
         if missing:
-            raise ValueError(f"{where}: missing {missing}")
+            raise InputError(None, f"{where}: missing {missing}")
         name = e["name"]
+        if not isinstance(name, str) or not name:
+            raise InputError(None, f"cameras[{i}].name: a non-empty string expected, got {str(name)[:40]!r}")
         where = f"cameras[{i}] ({name})"
         if e.get("distortion_model", "opencv") != "opencv":
-            raise ValueError(f"{where}.distortion_model: 'opencv' expected, got {e['distortion_model']!r}")
+            raise InputError(None, f"{where}.distortion_model: 'opencv' expected, got {e['distortion_model']!r}")
         size = e["image_size"]
-        if not (isinstance(size, list) and len(size) == 2):
-            raise ValueError(f"{where}.image_size: [width, height] expected, got {size!r}")
+        if not (isinstance(size, list) and len(size) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 65536 for v in size)):
+            raise InputError(None, f"{where}.image_size: [width, height] expected, got {size!r}")
         K = _matrix(e["K"], (3, 3), f"{where}.K")
         dist = _matrix(e["dist"], None, f"{where}.dist")
         T = _matrix(e["cam_from_rig"], (4, 4), f"{where}.cam_from_rig")
         try:
             cameras.append(Camera(name, size[0], size[1], K, dist, T))
-        except (ValueError, TypeError) as exc:
-            raise ValueError(f"{where}: {exc}") from None
+        except (ValueError, TypeError, OverflowError) as exc:
+            raise InputError(None, f"{where}: {exc}") from None
         if "dist_names" in e and list(e["dist_names"] or []) != list(DIST_NAMES[:dist.size]):
-            raise ValueError(f"{where}.dist_names: {list(DIST_NAMES[:dist.size])} expected for {dist.size} "
+            raise InputError(None, f"{where}.dist_names: {list(DIST_NAMES[:dist.size])} expected for {dist.size} "
                              f"coefficients (OpenCV order), got {e['dist_names']!r}")
         extra = {k: v for k, v in e.items() if k not in _CAMERA_KEYS}
         _check_residuals(extra, where)
@@ -434,7 +337,7 @@ def rig_from_dict(d: dict) -> Rig:
     try:
         rig = Rig(tuple(cameras))
     except ValueError as exc:
-        raise ValueError(f"cameras: {exc}") from None
+        raise InputError(None, f"cameras: {exc}") from None
     meta = {k: v for k, v in d.items() if k not in _RIG_DERIVED}
     if "heartcv_version" in d:
         meta["heartcv_version"] = d["heartcv_version"]
@@ -443,13 +346,13 @@ def rig_from_dict(d: dict) -> Rig:
         try:
             TargetSpec.from_dict(meta["target"])
         except ValueError as exc:
-            raise ValueError(f"target.{exc}") from None
+            raise InputError(None, f"target.{exc}") from None
     frame = d.get("rig_frame")
     if frame is not None and frame != "custom":
         if frame not in rig.names:
-            raise ValueError(f"rig_frame: a camera name or 'custom' expected, got {frame!r}")
+            raise InputError(None, f"rig_frame: a camera name or 'custom' expected, got {frame!r}")
         if np.abs(rig[frame].cam_from_rig - np.eye(4)).max() > 1e-12:
-            raise ValueError(f"rig_frame: {frame}'s cam_from_rig is not the identity; write 'custom'")
+            raise InputError(None, f"rig_frame: {frame}'s cam_from_rig is not the identity; write 'custom'")
     if cam_meta:
         meta["cameras"] = cam_meta
     return Rig(rig.cameras, meta)
@@ -458,15 +361,15 @@ def rig_from_dict(d: dict) -> Rig:
 def _matrix(v, shape, where) -> np.ndarray:
     try:
         a = np.array(v, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: numbers expected, got {v!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(None, f"{where}: numbers expected, got {v!r}") from None
     if shape is None:
         if a.ndim != 1:
-            raise ValueError(f"{where}: a flat list expected")
+            raise InputError(None, f"{where}: a flat list expected")
     elif a.shape != shape:
-        raise ValueError(f"{where}: shape {shape} expected, got {a.shape}")
+        raise InputError(None, f"{where}: shape {shape} expected, got {a.shape}")
     if not np.isfinite(a).all():
-        raise ValueError(f"{where}: finite numbers expected")
+        raise InputError(None, f"{where}: finite numbers expected")
     return a
 
 
@@ -476,17 +379,17 @@ def _is_num(v) -> bool:
 
 def _check_residuals(d: dict, where: str):
     if "rms_px" in d and not (_is_num(d["rms_px"]) and d["rms_px"] >= 0):
-        raise ValueError(f"{where}.rms_px: a number >= 0 expected, got {d['rms_px']!r}")
+        raise InputError(None, f"{where}.rms_px: a number >= 0 expected, got {d['rms_px']!r}")
     if "per_view_errors" in d:
         v = d["per_view_errors"]
         if not isinstance(v, list) or not all(x is None or (_is_num(x) and x >= 0) for x in v):
-            raise ValueError(f"{where}.per_view_errors: a list of numbers >= 0 (or null) expected")
+            raise InputError(None, f"{where}.per_view_errors: a list of numbers >= 0 (or null) expected")
     if "std" in d:
         std = d["std"]
         ok = isinstance(std, dict) and all(
             _is_num(x) or (isinstance(x, list) and all(_is_num(y) for y in x)) for x in std.values())
         if not ok:
-            raise ValueError(f"{where}.std: a mapping of numbers or lists of numbers expected")
+            raise InputError(None, f"{where}.std: a mapping of numbers or lists of numbers expected")
 
 
 def write_rig(path, rig: Rig) -> None:
@@ -502,8 +405,8 @@ def read_rig(path) -> Rig:
     _check_format(path, d, RIG_FORMAT)
     try:
         return rig_from_dict(d)
-    except ValueError as exc:
-        raise HeartcvIOError(path, str(exc)) from None
+    except InputError as exc:
+        raise exc.in_file(path) from None
 
 
 # =====================================================================================================================
@@ -630,7 +533,7 @@ def write_kalibr(path, rig: Rig, rostopics: dict | None = None) -> None:
 # =====================================================================================================================
 SCENE_FORMAT = ("heartcv.scene", 1)
 RENDER_TRUTH_FORMAT = ("heartcv.render_truth", 1)
-__all__ += ["SCENE_FORMAT", "RENDER_TRUTH_FORMAT", "read_scene", "scene_file_path", "atomic_folder", "encode_png",
+__all__ += ["SCENE_FORMAT", "RENDER_TRUTH_FORMAT", "read_scene", "scene_file_path", "encode_png",
             "write_inputs_csv", "read_inputs_csv", "write_render_truth", "read_render_truth"]
 
 
@@ -650,36 +553,6 @@ def scene_file_path(scene_path, relative) -> Path:
     """A path named in a scene file, resolved against the scene file's folder (absolute paths unchanged)."""
     p = Path(os.path.expanduser(str(relative)))
     return p if p.is_absolute() else Path(scene_path).resolve().parent / p
-
-
-@contextlib.contextmanager
-def atomic_folder(path):
-    """Yield a hidden temporary folder beside ``path``; only if the block succeeds is it renamed to ``path``
-    (an existing folder of that name is replaced as a whole). On failure the temporary folder is removed, so a
-    half-written folder never appears under the final name."""
-    import shutil
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-    try:
-        yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)
-        old = None
-        if path.exists():
-            if not path.is_dir():
-                raise HeartcvIOError(path, "exists and is not a folder; not replaced")
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
-            os.rmdir(old)
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def encode_png(image) -> bytes:
@@ -717,36 +590,50 @@ def read_inputs_csv(path) -> tuple[list, np.ndarray]:
 
 def write_render_truth(path, arrays: dict, meta: dict) -> None:
     """The truth of a render (``heartcv.render_truth`` v1): arrays plus a ``meta_json`` entry, written
-    atomically with ``numpy.savez_compressed`` (layout: docs/formats.md, render truth)."""
-    import json
+    atomically (layout: docs/formats.md §11)."""
+    write_npz(path, RENDER_TRUTH_FORMAT, arrays, meta)
 
-    meta = dict(meta)
-    meta.update({"format": RENDER_TRUTH_FORMAT[0], "format_version": RENDER_TRUTH_FORMAT[1],
-                 "heartcv_version": __version__})
-    payload = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
-    payload["meta_json"] = np.frombuffer(json.dumps(_plain(meta), sort_keys=True).encode(), dtype=np.uint8)
-    with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **payload)
+
+_FLAG = "biu"
+_RENDER_TRUTH_SCHEMA = {
+    # cameras (NC), boards views (NB), corners (C); sequence frames (T), vertices (V), points (P), dots (D)
+    "K": ArraySpec("f", ("NC", 3, 3)), "dist": ArraySpec("f", ("NC", None)),
+    "cam_from_world": ArraySpec("f", ("NC", 4, 4)), "cam_from_rig": ArraySpec("f", ("NC", 4, 4)),
+    "image_size": ArraySpec("iuf", (2,)),
+    "world_from_board": ArraySpec("f", ("NB", 4, 4)), "board_from_world": ArraySpec("f", ("NB", 4, 4)),
+    "cam_from_board": ArraySpec("f", ("NB", "NC", 4, 4)), "object_points": ArraySpec("f", ("C", 3)),
+    "corners_uv": ArraySpec("f", ("NB", "NC", "C", 2), finite="nan"),
+    "corners_visible": ArraySpec(_FLAG, ("NB", "NC", "C")), "incidence_deg": ArraySpec("f", ("NB", "NC"), finite="nan"),
+    "partial": ArraySpec(_FLAG, ("NB",)),
+    "times": ArraySpec("f", ("T",)), "theta": ArraySpec("f", ("T", 5)), "inputs": ArraySpec("f", ("T", "NU")),
+    "translation": ArraySpec("f", ("T", 3)), "world_from_patch": ArraySpec("f", (4, 4)),
+    "faces": ArraySpec("iu", ("F", 3)), "reference_vertices": ArraySpec("f", ("V", 3)),
+    "vertex_material": ArraySpec("f", ("V", 2)), "vertex_in_patch": ArraySpec(_FLAG, ("V",)),
+    "vertex_positions": ArraySpec("f", ("T", "V", 3)), "point_param": ArraySpec("f", ("P", 3)),
+    "point_positions": ArraySpec("f", ("T", "P", 3)), "fiducial_material": ArraySpec("f", ("D", 2)),
+    "fiducial_positions": ArraySpec("f", ("T", "D", 3)), "instrument_tip": ArraySpec("f", ("T", 3), finite="nan"),
+    "instrument_present": ArraySpec(_FLAG, ("T",)), "instrument_mask": ArraySpec("u", ("T", "NC", None, None)),
+}
+_RENDER_TRUTH_SCHEMA = {k: ArraySpec(v.kinds, v.shape, v.finite, required=False) for k, v in _RENDER_TRUTH_SCHEMA.items()}
 
 
 def read_render_truth(path) -> tuple[dict, dict]:
-    """``(arrays, meta)`` of a render truth file; HeartcvIOError for a missing, corrupt or foreign file."""
-    import json
-    import zipfile
-
-    path = Path(path)
-    if not path.is_file():
-        raise HeartcvIOError(path, "no such render truth file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-        meta = json.loads(bytes(data.pop("meta_json")).decode())
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
-        raise HeartcvIOError(path, f"not a readable render truth file ({exc})") from None
-    if meta.get("format") != RENDER_TRUTH_FORMAT[0] or meta.get("format_version") != RENDER_TRUTH_FORMAT[1]:
-        raise HeartcvIOError(path, f"{RENDER_TRUTH_FORMAT[0]} v{RENDER_TRUTH_FORMAT[1]} expected, got "
-                                   f"{meta.get('format')!r} v{meta.get('format_version')!r}")
+    """``(arrays, meta)`` of a render truth file, validated against docs/formats.md §11 (dtypes, shapes that agree,
+    finite values, face indices inside the mesh); InputError naming the file and the array."""
+    data, meta = read_npz(path, RENDER_TRUTH_FORMAT, _RENDER_TRUTH_SCHEMA)
+    if "faces" in data:
+        V = data["reference_vertices"].shape[0] if "reference_vertices" in data else 0
+        f = data["faces"]
+        if f.size and (f.min() < 0 or f.max() >= V):
+            raise InputError(path, f"vertex indices 0..{V - 1} expected", "faces")
+    if "times" in data and (data["times"].size < 1 or (np.diff(data["times"]) <= 0).any()):
+        raise InputError(path, "at least one frame, strictly increasing times expected", "times")
+    if "image_size" in data and (data["image_size"] < 1).any():
+        raise InputError(path, "positive [width, height] expected", "image_size")
+    if "inputs" in data:
+        names = get_field(meta, "input_names", "str-list", path, default=None, prefix="meta.")
+        if names is not None and len(names) != data["inputs"].shape[1]:
+            raise InputError(path, f"{data['inputs'].shape[1]} names expected", "meta.input_names")
     return data, meta
 
 
@@ -1001,30 +888,9 @@ def read_timestamps(path, frame_names) -> np.ndarray:
 
 def read_inputs_csv_columns(path, numeric_except=()) -> tuple[dict, int]:
     """``({column: values}, n_rows)`` of a comma-separated table with ``#`` comment lines and a header row;
-    columns named in ``numeric_except`` are kept as strings, the others parsed as floats."""
-    path = Path(path)
-    try:
-        rows = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
-    except OSError as exc:
-        raise HeartcvIOError(path, f"cannot read table ({exc.strerror})") from None
-    if not rows:
-        raise HeartcvIOError(path, "empty table (a header row of column names expected)")
-    header = [c.strip() for c in rows[0].split(",")]
-    cells = [[c.strip() for c in r.split(",")] for r in rows[1:]]
-    for i, r in enumerate(cells):
-        if len(r) != len(header):
-            raise HeartcvIOError(path, f"row {i + 1}: {len(r)} values for {len(header)} columns {header}")
-    out = {}
-    for j, name in enumerate(header):
-        col = [r[j] for r in cells]
-        if name in numeric_except:
-            out[name] = col
-            continue
-        try:
-            out[name] = np.array([float(v) for v in col], float)
-        except ValueError as exc:
-            raise HeartcvIOError(path, f"column {name!r}: not numeric ({exc})") from None
-    return out, len(cells)
+    columns named in ``numeric_except`` are kept as strings, the others parsed as finite floats
+    (:func:`heartcv.tracker.files.read_csv_table`)."""
+    return read_csv_table(path, numeric_except, "table")
 
 
 def read_mask(path, expected_size=None) -> np.ndarray:

@@ -17,7 +17,7 @@ readers and writers on it; ``heartcv.cli`` calls it for output safety). It depen
   schema (:class:`ArraySpec`) with named dimensions shared between arrays.
 - Typed getters for metadata and YAML fields (:func:`get_field`) that name the field when they refuse a value.
 
-Limits are module constants (:data:`LIMITS`), documented in docs/formats.md §0.
+Limits are module constants (:data:`LIMITS`), documented in docs/formats.md §1.10.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
-    "write_npz", "read_csv_table",
+    "write_npz", "read_csv_table", "get_matrix",
 ]
 
 LIMITS = {
@@ -813,3 +813,25 @@ def read_csv_table(path, numeric_except=(), what: str = "table") -> tuple[dict, 
                              f"column {name!r}")
         out[name] = values
     return out, len(cells)
+
+
+def get_matrix(v, shape, path=None, field: str | None = None, *, allow_none: bool = False):
+    """A finite float array of ``shape`` (None entries: any length; ``shape=None``: a flat list) from YAML/JSON
+    data (lists of lists); InputError naming the field for ragged, non-numeric, non-finite or misshapen data."""
+    if v is None and allow_none:
+        return None
+    if not isinstance(v, (list, tuple)):
+        raise InputError(path, f"a list of numbers expected, got {_short(v)}", field)
+    try:
+        a = np.array(v, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(path, f"a {'list' if shape is None else 'matrix'} of numbers expected (ragged or "
+                               f"non-numeric: {_short(v)})", field) from None
+    if shape is None:
+        if a.ndim != 1:
+            raise InputError(path, f"a flat list of numbers expected, got shape {a.shape}", field)
+    elif a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
+        raise InputError(path, f"shape {_shape_text(shape)} expected, got {a.shape}", field)
+    if not np.isfinite(a).all():
+        raise InputError(path, "finite numbers expected", field)
+    return a

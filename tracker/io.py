@@ -1,24 +1,33 @@
-"""File I/O of the tracker package: model YAML, measurement / estimate / truth ``.npz`` files.
+"""File I/O of the tracker package: model YAML, measurement / estimate / truth / study ``.npz`` files and the
+parameters file of ``heartcv fit``.
 
-Every ``.npz`` holds its arrays plus one ``meta_json`` entry (UTF-8 JSON with ``format``, ``format_version``,
-the producing ``heartcv`` version and the inputs' hashes). Writes are atomic: a temporary file in the
-target directory is renamed over the destination only when complete. Formats: ``docs/formats.md``.
+Built on :mod:`heartcv.tracker.files` (the one file-handling foundation of heartcv): every reader validates the
+whole file against its documented layout (docs/formats.md §2–§6, §12) — dtypes, shapes with named dimensions that
+must agree, finiteness, metadata types — and raises :class:`~heartcv.tracker.files.InputError` naming the file and
+the field; writes are atomic.
 """
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import json
-import os
 from pathlib import Path
-import tempfile
-import zipfile
 
 import numpy as np
 
 from . import __version__
 from .config import ConfigError, ModelConfig, model_config_from_dict
+from .files import (
+    ArraySpec,
+    InputError,
+    atomic_path,
+    dump_yaml,
+    file_hash,
+    get_field,
+    get_matrix,
+    plain,
+    read_npz,
+    read_yaml,
+    write_npz,
+)
 from .measurements import EstimateSet, MeasurementSet
 
 __all__ = [
@@ -32,9 +41,14 @@ __all__ = [
     "write_estimates",
     "write_truth",
     "read_truth",
+    "read_study",
+    "write_study",
+    "read_parameters",
+    "write_parameters",
     "MEASUREMENT_FORMAT",
     "ESTIMATE_FORMAT",
     "TRUTH_FORMAT",
+    "PARAMETERS_FORMAT",
 ]
 
 MEASUREMENT_FORMAT = ("heartcv.measurements", 1)
@@ -42,144 +56,143 @@ ESTIMATE_FORMAT = ("heartcv.estimates", 1)
 TRUTH_FORMAT = ("heartcv.truth", 1)
 STUDY_FORMAT = ("heartcv.study", 1)
 
-
-class FileFormatError(ValueError):
-    """A file is missing, unreadable, truncated or not of the expected format; ``path`` names it."""
-
-    def __init__(self, path, message):
-        super().__init__(f"{path}: {message}")
-        self.path = str(path)
-
-
-def file_hash(path) -> str:
-    """``sha256:<hex>`` of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return "sha256:" + h.hexdigest()
-
-
-@contextlib.contextmanager
-def atomic_path(path, suffix=None):
-    """Yield a temporary path beside ``path``; rename it over ``path`` only if the block succeeds."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp",
-                               dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file ordinary permissions
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+#: The error of every reader (the one error type of heartcv; kept under its old name)
+FileFormatError = InputError
 
 
 # -- model ---------------------------------------------------------------------------------------
-def _load_yaml(path: Path, what: str):
-    """The parsed YAML of ``path``; FileFormatError naming the file when it cannot be read or parsed."""
-    import yaml
-
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise FileFormatError(path, f"cannot read {what} ({exc.strerror})") from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise FileFormatError(path, f"not valid YAML: {exc}") from None
-
-
 def read_model(path) -> ModelConfig:
-    """Read and validate a model YAML file (ConfigError names the field, FileFormatError the file)."""
+    """Read and validate a model YAML file (InputError naming the file and the field)."""
     path = Path(path)
-    data = _load_yaml(path, "model file")
+    data = read_yaml(path, "model file")
     try:
         return model_config_from_dict(data)
     except ConfigError as exc:
-        raise ConfigError(exc.field, f"{str(exc).split(': ', 1)[1]} (in {path})") from None
+        raise exc.in_file(path) from None
 
 
-# -- npz helpers -----------------------------------------------------------------------------------
-def _write_npz(path, fmt, arrays: dict, meta: dict):
-    meta = dict(meta)
-    meta.update({"format": fmt[0], "format_version": fmt[1], "heartcv_version": __version__})
-    payload = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
-    payload["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True, default=_json_default).encode(),
-                                         dtype=np.uint8)
-    with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **payload)
+# -- shared metadata checks --------------------------------------------------------------------------
+def _meta_str_list(meta, key, path, n=None):
+    v = get_field(meta, key, "str-list", path, default=[], prefix="meta.")
+    if n is not None and len(v) != n:
+        raise InputError(path, f"{n} entries expected, got {len(v)}", f"meta.{key}")
+    return tuple(v)
 
 
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def _read_npz(path, fmt, required):
-    path = Path(path)
-    if not path.is_file():
-        raise FileFormatError(path, "no such file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        raise FileFormatError(path, f"not a readable .npz file (truncated or corrupt: {exc})") from None
-    if "meta_json" not in data:
-        raise FileFormatError(path, "no meta_json entry: not a heartcv file")
-    try:
-        meta = json.loads(bytes(data.pop("meta_json")).decode())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FileFormatError(path, f"corrupt metadata ({exc})") from None
-    if meta.get("format") != fmt[0]:
-        raise FileFormatError(path, f"format {fmt[0]!r} expected, got {meta.get('format')!r}")
-    if meta.get("format_version") != fmt[1]:
-        raise FileFormatError(path, f"{fmt[0]} version {fmt[1]} supported, got {meta.get('format_version')!r}")
-    missing = [k for k in required if k not in data]
-    if missing:
-        raise FileFormatError(path, f"missing arrays {missing}")
-    return data, meta
+def _meta_int_list(meta, key, path, hi):
+    v = get_field(meta, key, "list", path, default=[], prefix="meta.")
+    if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < hi for i in v):
+        raise InputError(path, f"a list of indices 0..{hi - 1} expected", f"meta.{key}")
+    return v
 
 
 # -- measurements --------------------------------------------------------------------------------
+_MEAS_SCHEMA = {
+    "times": ArraySpec("f", ("K",)),
+    "point_ids": ArraySpec("iu", ("P",)),
+    "positions": ArraySpec("f", ("K", "P", 3), finite="nan"),
+    "covariances": ArraySpec("f", ("K", "P", 3, 3), finite="nan"),
+    "reference": ArraySpec("f", ("P", 3)),
+    "inputs": ArraySpec("f", None),
+    "views": ArraySpec("iu", ("K", "P"), required=False),
+    "reprojection_rms": ArraySpec("f", ("K", "P"), finite="nan", required=False),
+}
+
+
 def write_measurements(path, m: MeasurementSet, meta: dict | None = None):
     md = dict(m.meta)
     md.update(meta or {})
     md.update({"input_names": list(m.input_names), "input_units": list(m.input_units), "frame": m.frame})
-    _write_npz(path, MEASUREMENT_FORMAT, {
+    write_npz(path, MEASUREMENT_FORMAT, {
         "times": m.times, "point_ids": m.point_ids, "positions": m.positions, "covariances": m.covariances,
         "reference": m.reference, "inputs": m.inputs, "views": m.views, "reprojection_rms": m.reprojection_rms,
     }, md)
 
 
 def read_measurements(path) -> MeasurementSet:
-    data, meta = _read_npz(path, MEASUREMENT_FORMAT,
-                           ("times", "point_ids", "positions", "covariances", "reference", "inputs"))
+    """Read and validate a measurement file (docs/formats.md §3)."""
+    data, meta = read_npz(path, MEASUREMENT_FORMAT, _MEAS_SCHEMA)
+    K, P = data["positions"].shape[:2]
+    u = data["inputs"]
+    if u.ndim == 1:
+        u = u.reshape(-1, 1)
+    if u.ndim != 2 or u.shape[0] != K:
+        raise InputError(path, f"shape ({K}, n_u) or ({K},) expected, got {data['inputs'].shape}", "inputs")
+    names = _meta_str_list(meta, "input_names", path, u.shape[1])
+    units = _meta_str_list(meta, "input_units", path) or ("",) * len(names)
+    if len(units) != len(names):
+        raise InputError(path, f"{len(names)} entries expected, got {len(units)}", "meta.input_units")
+    frame = get_field(meta, "frame", "str", path, default="patch", prefix="meta.")
+    _check_measure_meta(meta, path, K, P)
     try:
-        return MeasurementSet(
-            data["times"], data["point_ids"], data["positions"], data["covariances"], data["reference"],
-            data["inputs"], tuple(meta.get("input_names", ())), tuple(meta.get("input_units", ())),
-            meta.get("frame", "patch"), data.get("views"), data.get("reprojection_rms"), meta,
-        )
-    except ValueError as exc:
-        raise FileFormatError(path, str(exc)) from None
+        return MeasurementSet(data["times"], data["point_ids"], data["positions"], data["covariances"],
+                              data["reference"], u, names, units, frame, data.get("views"),
+                              data.get("reprojection_rms"), meta)
+    except InputError as exc:
+        raise exc.in_file(path) from None
+
+
+def _check_measure_meta(meta, path, K, P):
+    """Types of the optional metadata that later stages use (docs/formats.md §3.2)."""
+    if "reference_uv" in meta:
+        get_matrix(meta["reference_uv"], (P, 2), path, "meta.reference_uv")
+    if "reference_frame_index" in meta:
+        v = _meta_int_list(meta, "reference_frame_index", path, K)
+        if len(v) != P:
+            raise InputError(path, f"{P} entries expected, got {len(v)}", "meta.reference_frame_index")
+    for key in ("sigma_px", "stiffness_cycle"):
+        if key in meta and meta[key] is not None:
+            get_field(meta, key, "float", path, lo=0, prefix="meta.")
+    for key in ("camera_names", "frame_names"):
+        if key in meta:
+            _meta_str_list(meta, key, path)
+    if meta.get("registration") is not None:
+        _check_registration(meta["registration"], path, "meta.registration")
+    if meta.get("dropped_points") is not None:
+        _meta_int_list(meta, "dropped_points", path, P)
+
+
+def _check_registration(reg, path, field):
+    """A registration mapping (parameters file, measurement metadata): ``patch_from_rig`` a finite rigid 4x4."""
+    if not isinstance(reg, dict):
+        raise InputError(path, "a mapping expected", field)
+    if "patch_from_rig" in reg or field == "registration":
+        T = get_matrix(reg.get("patch_from_rig"), (4, 4), path, f"{field}.patch_from_rig")
+        R = T[:3, :3]
+        if (np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1) > 1e-6
+                or np.abs(T[3] - [0, 0, 0, 1]).max() > 0):
+            raise InputError(path, "a rigid transform (rotation, translation, last row 0 0 0 1) expected",
+                             f"{field}.patch_from_rig")
+    if "rms_m" in reg:
+        get_field(reg, "rms_m", "float", path, lo=0, prefix=f"{field}.")
+    if "points_on_patch" in reg:
+        v = get_field(reg, "points_on_patch", "list", path, prefix=f"{field}.")
+        if any(isinstance(i, bool) or not isinstance(i, int) for i in v):
+            raise InputError(path, "a list of point ids expected", f"{field}.points_on_patch")
 
 
 # -- estimates ------------------------------------------------------------------------------------
 _EST_ARRAYS = ("times", "point_ids", "state_mean", "state_var", "theta", "theta_std", "predictions",
                "innovations", "nis", "nis_dof", "truncation_events", "step_time")
 _EST_OPTIONAL = ("phi_mean", "phi_cov", "filtered")
+_EST_SCHEMA = {
+    "times": ArraySpec("f", ("K",)),
+    "point_ids": ArraySpec("iu", ("P",)),
+    "state_mean": ArraySpec("f", ("K", "NX"), finite="nan"),
+    "state_var": ArraySpec("f", ("K", "NX"), finite="nan"),
+    "theta": ArraySpec("f", ("K", 5), finite="nan"),
+    "theta_std": ArraySpec("f", ("K", 5), finite="nan"),
+    "predictions": ArraySpec("f", ("K", "P", 3), finite="nan"),
+    "innovations": ArraySpec("f", ("K", "P", 3), finite="nan"),
+    "nis": ArraySpec("f", ("K",), finite="nan"),
+    "nis_dof": ArraySpec("iu", ("K",)),
+    "truncation_events": ArraySpec("iu", ("K",)),
+    "step_time": ArraySpec("f", ("K",), finite="nan"),
+    "phi_mean": ArraySpec("f", ("K", "M"), finite="nan", required=False),
+    "phi_cov": ArraySpec("f", ("K", "M", "M"), finite="nan", required=False),
+    "filtered": ArraySpec("f", ("K", "P", 3), finite="nan", required=False),
+}
+ESTIMATORS = ("kf", "ge", "ukf", "ekf")
 
 
 def write_estimates(path, e: EstimateSet, meta: dict | None = None):
@@ -187,22 +200,59 @@ def write_estimates(path, e: EstimateSet, meta: dict | None = None):
     md.update(meta or {})
     md.update({"estimator": e.estimator, "completed_steps": int(e.completed_steps)})
     arrays = {k: getattr(e, k) for k in _EST_ARRAYS + _EST_OPTIONAL}
-    _write_npz(path, ESTIMATE_FORMAT, arrays, md)
+    write_npz(path, ESTIMATE_FORMAT, arrays, md)
 
 
 def read_estimates(path) -> EstimateSet:
-    data, meta = _read_npz(path, ESTIMATE_FORMAT, _EST_ARRAYS)
+    """Read and validate an estimate file (docs/formats.md §4)."""
+    data, meta = read_npz(path, ESTIMATE_FORMAT, _EST_SCHEMA)
+    K, P = data["predictions"].shape[:2]
+    estimator = get_field(meta, "estimator", "str", path, prefix="meta.")
+    if estimator not in ESTIMATORS:
+        raise InputError(path, f"one of {list(ESTIMATORS)} expected, got {estimator!r}", "meta.estimator")
+    steps = get_field(meta, "completed_steps", "int", path, lo=0, hi=K, prefix="meta.")
+    M = data["phi_mean"].shape[1] if "phi_mean" in data else 0
+    est = _meta_str_list(meta, "estimated", path, M if "phi_mean" in data else None)
+    from .params import NAMES
+
+    if any(n not in NAMES for n in est) or len(set(est)) != len(est):
+        raise InputError(path, f"distinct names from {list(NAMES)} expected, got {list(est)}", "meta.estimated")
+    if meta.get("dropped_points") is not None:
+        _meta_int_list(meta, "dropped_points", path, P)
+    for key in ("theta0", "prior_std_phi"):
+        if meta.get(key) is not None:
+            get_matrix(meta[key], (5,) if key == "theta0" else (M,), path, f"meta.{key}")
+    if meta.get("dt") is not None:
+        get_field(meta, "dt", "float", path, lo=0, prefix="meta.")
+    if meta.get("patch_from_rig") is not None:
+        _check_registration({"patch_from_rig": meta["patch_from_rig"]}, path, "meta")
+    for key in ("partial", "joseph", "modal_path"):
+        if key in meta:
+            get_field(meta, key, "bool", path, prefix="meta.")
     try:
-        return EstimateSet(meta["estimator"], *(data[k] for k in _EST_ARRAYS), int(meta["completed_steps"]),
-                           meta, *(data.get(k) for k in _EST_OPTIONAL))
-    except (KeyError, ValueError) as exc:
-        raise FileFormatError(path, f"inconsistent estimate file: {exc}") from None
+        return EstimateSet(estimator, *(data[k] for k in _EST_ARRAYS), steps, meta,
+                           *(data.get(k) for k in _EST_OPTIONAL))
+    except InputError as exc:
+        raise exc.in_file(path) from None
 
 
 # -- truth ----------------------------------------------------------------------------------------
+_TRUTH_SCHEMA = {
+    "times": ArraySpec("f", ("K",)),
+    "theta": ArraySpec("f", ("K", 5)),
+    "inputs": ArraySpec("f", ("K", "NU"), required=False),
+    "translation": ArraySpec("f", ("K", 3), required=False),
+    "states": ArraySpec("f", ("K", "NX"), required=False),
+    "node_displacements": ArraySpec("f", ("K", "N", 3), required=False),
+    "point_param": ArraySpec("f", ("P", 3), required=False),
+    "reference": ArraySpec("f", ("P", 3)),
+    "positions": ArraySpec("f", ("K", "P", 3)),
+}
+
+
 def write_truth(path, sim, meta: dict | None = None):
     """Ground truth of a simulation (``tracker.simulate.Simulation``)."""
-    _write_npz(path, TRUTH_FORMAT, {
+    write_npz(path, TRUTH_FORMAT, {
         "times": sim.times, "theta": sim.theta, "inputs": sim.inputs, "translation": sim.translation,
         "states": sim.states, "node_displacements": sim.node_displacements, "point_param": sim.point_param,
         "reference": sim.reference, "positions": sim.positions,
@@ -210,17 +260,25 @@ def write_truth(path, sim, meta: dict | None = None):
 
 
 def read_truth(path) -> tuple[dict, dict]:
-    return _read_npz(path, TRUTH_FORMAT, ("times", "theta", "positions", "reference"))
+    """``(arrays, meta)`` of a truth file, validated (docs/formats.md §5)."""
+    data, meta = read_npz(path, TRUTH_FORMAT, _TRUTH_SCHEMA)
+    t = data["times"]
+    if t.size < 1 or (np.diff(t) <= 0).any():
+        raise InputError(path, "at least one frame, strictly increasing times expected", "times")
+    if "inputs" in data:
+        _meta_str_list(meta, "input_names", path, data["inputs"].shape[1])
+    return data, meta
 
 
 # -- Monte-Carlo study ----------------------------------------------------------------------------
 def write_study(path, arrays: dict, meta: dict | None = None):
-    """The arrays of a Monte-Carlo study (``heartcv simulate``), written atomically (docs/formats.md)."""
-    _write_npz(path, STUDY_FORMAT, arrays, dict(meta or {}))
+    """The arrays of a Monte-Carlo study (``heartcv simulate``), written atomically (docs/formats.md §6)."""
+    write_npz(path, STUDY_FORMAT, arrays, dict(meta or {}))
 
 
 def read_study(path) -> tuple[dict, dict]:
-    return _read_npz(path, STUDY_FORMAT, ())
+    """``(arrays, meta)`` of a study file (safe loading; the arrays are checked by their consumer)."""
+    return read_npz(path, STUDY_FORMAT, {})
 
 
 # -- parameters (heartcv fit) ------------------------------------------------------------------------
@@ -228,25 +286,6 @@ PARAMETERS_FORMAT = ("heartcv.parameters", 1)
 _PARAM_KEYS = ("format", "format_version", "theta", "theta_std", "units", "estimated", "fixed", "phi", "epsilon",
                "covariance", "cost", "dof", "reduced_chi2", "iterations", "evaluations", "converged", "status",
                "message", "frames", "points", "observations", "at_bound", "starts", "registration")
-
-
-def _plain(o):
-    """numpy scalars and arrays -> Python floats, ints, bools and lists (for yaml.safe_dump)."""
-    if isinstance(o, dict):
-        return {str(k): _plain(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_plain(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _plain(o.tolist())
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, Path):
-        return str(o)
-    return o
 
 
 def parameters_to_dict(result, meta: dict | None = None) -> dict:
@@ -291,7 +330,7 @@ def parameters_to_dict(result, meta: dict | None = None) -> dict:
         if k in _PARAM_KEYS:
             raise ValueError(f"meta: key {k!r} is reserved in a parameters file")
         d[k] = v
-    return _plain(d)
+    return plain(d)
 
 
 def parameters_from_dict(d, path="<parameters>"):
@@ -300,25 +339,17 @@ def parameters_from_dict(d, path="<parameters>"):
     from .params import NAMES
 
     def bad(field_name, msg):
-        return FileFormatError(path, f"{field_name}: {msg}")
+        return InputError(path, msg, field_name)
 
     if not isinstance(d, dict):
-        raise FileFormatError(path, "a YAML mapping expected: not a heartcv parameters file")
+        raise InputError(path, "a YAML mapping expected: not a heartcv parameters file")
     if d.get("format") != PARAMETERS_FORMAT[0]:
-        raise FileFormatError(path, f"format {PARAMETERS_FORMAT[0]!r} expected, got {d.get('format')!r}")
+        raise bad("format", f"{PARAMETERS_FORMAT[0]!r} expected, got {str(d.get('format'))[:80]!r}")
     if d.get("format_version") != PARAMETERS_FORMAT[1]:
-        raise FileFormatError(path, f"{PARAMETERS_FORMAT[0]} version {PARAMETERS_FORMAT[1]} supported, "
-                                    f"got {d.get('format_version')!r}")
+        raise bad("format_version", f"{PARAMETERS_FORMAT[1]} supported, got {str(d.get('format_version'))[:80]}")
 
     def number(v, field_name):
-        if isinstance(v, str):  # PyYAML reads 1e-3 (no dot) as a string
-            try:
-                v = float(v)
-            except ValueError:
-                raise bad(field_name, f"a number expected, got {v!r}") from None
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise bad(field_name, f"a number expected, got {v!r}")
-        return float(v)
+        return get_field({field_name: v}, field_name, "float", path)
 
     def per_name(key, names, required=True, default=0.0):
         v = d.get(key)
@@ -326,20 +357,13 @@ def parameters_from_dict(d, path="<parameters>"):
             if required:
                 raise bad(key, "required mapping {name: value} is missing")
             return np.full(len(names), default)
-        if not isinstance(v, dict) or set(v) - set(names) or (required and set(names) - set(v)):
-            raise bad(key, f"a mapping with the keys {list(names)} expected, got {v!r}")
+        if not isinstance(v, dict) or set(map(str, v)) - set(names) or (required and set(names) - set(v)):
+            raise bad(key, f"a mapping with the keys {list(names)} expected")
         return np.array([number(v.get(n, default), f"{key}.{n}") for n in names])
 
     def matrix(v, field_name, M):
-        if v is None:
-            return None
-        try:
-            a = np.array([[number(x, field_name) for x in row] for row in v], float)
-        except TypeError:
-            raise bad(field_name, f"a {M}x{M} list of lists expected") from None
-        if a.shape != (M, M) or not np.isfinite(a).all():
-            raise bad(field_name, f"a finite {M}x{M} matrix expected, got shape {a.shape}")
-        if np.abs(a - a.T).max(initial=0) > 1e-9 * np.abs(a).max(initial=0):
+        a = get_matrix(v, (M, M), path, field_name, allow_none=True)
+        if a is not None and np.abs(a - a.T).max(initial=0) > 1e-9 * np.abs(a).max(initial=0):
             raise bad(field_name, "not symmetric")
         return a
 
@@ -383,16 +407,12 @@ def parameters_from_dict(d, path="<parameters>"):
         raise bad("covariance.scaled", f"true or false expected, got {scaled!r}")
     reg = d.get("registration")
     if reg is not None:
-        if not isinstance(reg, dict) or "patch_from_rig" not in reg:
-            raise bad("registration", "a mapping with patch_from_rig (4x4) expected")
-        T = np.array(reg["patch_from_rig"], float) if isinstance(reg["patch_from_rig"], list) else None
-        if T is None or T.shape != (4, 4) or not np.isfinite(T).all():
-            raise bad("registration.patch_from_rig", "a finite 4x4 matrix expected")
+        _check_registration(reg, path, "registration")
 
     def opt(key, kind, default):
         v = d.get(key, default)
         if kind is float:
-            return number(v, key)
+            return v if key not in d else number(v, key)  # absent: NaN (cost, chi-square not recorded)
         if kind is int:
             if isinstance(v, bool) or not isinstance(v, int):
                 raise bad(key, f"an integer expected, got {v!r}")
@@ -407,7 +427,7 @@ def parameters_from_dict(d, path="<parameters>"):
     at_bound = d.get("at_bound") or []
     if not isinstance(starts, list) or not all(isinstance(s, dict) for s in starts):
         raise bad("starts", "a list of mappings expected")
-    if not isinstance(at_bound, list) or any(n not in est for n in at_bound):
+    if not isinstance(at_bound, list) or any(not isinstance(n, str) or n not in est for n in at_bound):
         raise bad("at_bound", f"a list of estimated names expected, got {at_bound!r}")
     meta = {k: v for k, v in d.items() if k not in _PARAM_KEYS}
     try:
@@ -419,18 +439,16 @@ def parameters_from_dict(d, path="<parameters>"):
             opt("status", int, 0), opt("message", str, ""), opt("frames", int, 0), opt("points", int, 0),
             opt("observations", int, 0), tuple(starts), tuple(at_bound), reg, meta, covariance_kind=kind,
         )
-    except ValueError as exc:
-        raise FileFormatError(path, str(exc)) from None
+    except ValueError as exc:  # FitResult's own checks of the values it is given (validation, not computation)
+        raise InputError(path, str(exc)) from None
 
 
 def write_parameters(path, result, meta: dict | None = None):
     """Write a ``tracker.fit.FitResult`` as a parameters file (YAML, ``heartcv.parameters`` v1), atomically."""
-    import yaml
-
     d = parameters_to_dict(result, meta)
-    text = ("# heartcv parameters: fitted theta [rho, alpha1, alpha2, E, nu] (SI) and its covariance, in SI and in\n"
-            "# the estimators' coordinates phi (estimated subset). docs/formats.md, parameters file.\n")
-    text += yaml.safe_dump(d, sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
+    text = dump_yaml(d, "heartcv parameters: fitted theta [rho, alpha1, alpha2, E, nu] (SI) and its covariance, in "
+                        "SI and in\nthe estimators' coordinates phi (estimated subset). docs/formats.md, parameters "
+                        "file.")
     with atomic_path(path, suffix=Path(path).suffix or ".yaml") as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
 
@@ -438,4 +456,4 @@ def write_parameters(path, result, meta: dict | None = None):
 def read_parameters(path):
     """Read a parameters file into a ``tracker.fit.FitResult`` (FileFormatError names the file and field)."""
     path = Path(path)
-    return parameters_from_dict(_load_yaml(path, "parameters file"), path)
+    return parameters_from_dict(read_yaml(path, "parameters file"), path)

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .files import InputError
+
 __all__ = ["MeasurementSet", "EstimateSet"]
 
 
@@ -51,30 +53,30 @@ class MeasurementSet:
         t = _ro(self.times).reshape(-1)
         K = t.size
         if K < 1:
-            raise ValueError("times: at least one frame expected")
+            raise InputError(None, "at least one frame expected", "times")
         if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
-            raise ValueError("times: finite and strictly increasing values expected")
+            raise InputError(None, "finite and strictly increasing values expected", "times")
         pos = _ro(self.positions)
         if pos.ndim != 3 or pos.shape[0] != K or pos.shape[2] != 3:
-            raise ValueError(f"positions: shape ({K}, P, 3) expected, got {pos.shape}")
+            raise InputError(None, f"shape ({K}, P, 3) expected, got {pos.shape}", "positions")
         P = pos.shape[1]
         if np.isinf(pos).any():
-            raise ValueError("positions: infinite values (use NaN for points not seen)")
+            raise InputError(None, "infinite values (use NaN for points not seen)", "positions")
         cov = _ro(self.covariances)
         if cov.shape != (K, P, 3, 3):
-            raise ValueError(f"covariances: shape ({K}, {P}, 3, 3) expected, got {cov.shape}")
+            raise InputError(None, f"shape ({K}, {P}, 3, 3) expected, got {cov.shape}", "covariances")
         seen = np.isfinite(pos).all(axis=2)
         partial = np.isfinite(pos).any(axis=2) & ~seen
         if partial.any():
             k, p = np.argwhere(partial)[0]
-            raise ValueError(f"positions: frame {k}, point {p} has some but not all coordinates NaN")
+            raise InputError(None, f"frame {k}, point {p} has some but not all coordinates NaN", "positions")
         cs = cov[seen]
         if cs.size:
             where = np.argwhere(seen)
 
             def first(bad, what):
                 k, p = where[np.flatnonzero(bad)[0]]
-                raise ValueError(f"covariances: frame {k}, point {p}: {what}")
+                raise InputError(None, f"frame {k}, point {p}: {what}", "covariances")
 
             fin = np.isfinite(cs).all(axis=(1, 2))
             if not fin.all():
@@ -89,25 +91,25 @@ class MeasurementSet:
                 first(bad, "singular or not positive definite")
         ref = _ro(self.reference)
         if ref.shape != (P, 3) or not np.isfinite(ref).all():
-            raise ValueError(f"reference: finite array of shape ({P}, 3) expected, got {ref.shape}")
+            raise InputError(None, f"finite array of shape ({P}, 3) expected, got {ref.shape}", "reference")
         ids = _ro(self.point_ids, np.int64).reshape(-1)
         if ids.size != P or np.unique(ids).size != P:
-            raise ValueError(f"point_ids: {P} unique identifiers expected")
+            raise InputError(None, f"{P} unique identifiers expected", "point_ids")
         u = _ro(self.inputs)
         if u.ndim == 1:
             u = _ro(u.reshape(K, -1))
         if u.shape[0] != K or not np.isfinite(u).all():
-            raise ValueError(f"inputs: finite array of shape ({K}, n_u) expected, got {u.shape}")
+            raise InputError(None, f"finite array of shape ({K}, n_u) expected, got {u.shape}", "inputs")
         names = tuple(self.input_names)
         units = tuple(self.input_units) or tuple("" for _ in names)
         if len(names) != u.shape[1] or len(units) != len(names):
-            raise ValueError(f"input_names/input_units: {u.shape[1]} names and units expected")
+            raise InputError(None, f"{u.shape[1]} names and units expected", "input_names/input_units")
         if self.frame not in ("patch", "rig"):
-            raise ValueError(f"frame: 'patch' or 'rig' expected, got {self.frame!r}")
+            raise InputError(None, f"'patch' or 'rig' expected, got {self.frame!r}", "frame")
         views = np.zeros((K, P), np.int64) if self.views is None else np.array(self.views, np.int64)
         rms = np.full((K, P), np.nan) if self.reprojection_rms is None else np.array(self.reprojection_rms, float)
         if views.shape != (K, P) or rms.shape != (K, P):
-            raise ValueError(f"views/reprojection_rms: shape ({K}, {P}) expected")
+            raise InputError(None, f"shape ({K}, {P}) expected", "views/reprojection_rms")
         for name, val in (("times", t), ("positions", pos), ("covariances", cov), ("reference", ref),
                           ("point_ids", ids), ("inputs", u), ("views", _ro(views, np.int64)),
                           ("reprojection_rms", _ro(rms))):
@@ -133,7 +135,7 @@ class MeasurementSet:
         idx = []
         for n in names:
             if n not in self.input_names:
-                raise ValueError(f"inputs: the model needs input {n!r}, the file has {list(self.input_names)}")
+                raise InputError(None, f"the model needs input {n!r}, the file has {list(self.input_names)}", "inputs")
             idx.append(self.input_names.index(n))
         return self.inputs[:, idx]
 
@@ -196,11 +198,11 @@ class EstimateSet:
     def __post_init__(self):
         K = np.asarray(self.times).size
         if (self.phi_mean is None) != (self.phi_cov is None):
-            raise ValueError("phi_mean and phi_cov: both or neither expected")
+            raise InputError(None, "both or neither expected", "phi_mean and phi_cov")
         if self.phi_mean is not None:
             pm, pc = np.asarray(self.phi_mean), np.asarray(self.phi_cov)
             if pm.ndim != 2 or pm.shape[0] != K or pc.shape != (K, pm.shape[1], pm.shape[1]):
-                raise ValueError(f"phi_mean/phi_cov: shapes (K, M) and (K, M, M) expected, got {pm.shape}, {pc.shape}")
+                raise InputError(None, f"shapes (K, M) and (K, M, M) expected, got {pm.shape}, {pc.shape}", "phi_mean/phi_cov")
         P = np.asarray(self.point_ids).size
         expect = {
             "state_mean": (K, None), "state_var": (K, None), "theta": (K, 5), "theta_std": (K, 5),
@@ -212,9 +214,9 @@ class EstimateSet:
         for name, shape in expect.items():
             a = np.asarray(getattr(self, name))
             if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-                raise ValueError(f"{name}: shape {shape} expected, got {a.shape}")
+                raise InputError(None, f"shape {shape} expected, got {a.shape}", f"{name}")
         if not 0 <= self.completed_steps <= K:
-            raise ValueError(f"completed_steps: 0..{K} expected, got {self.completed_steps}")
+            raise InputError(None, f"0..{K} expected, got {self.completed_steps}", "completed_steps")
 
     @property
     def complete(self) -> bool:

@@ -99,7 +99,7 @@ def _rig_dict(rng):
 
 
 @pytest.mark.parametrize("edit, match", [
-    (lambda d: d.update(format="heartcv.target"), "format 'heartcv.rig' expected"),
+    (lambda d: d.update(format="heartcv.target"), "format: 'heartcv.rig' expected"),
     (lambda d: d.update(format_version=2), "format_version: 1 supported"),
     (lambda d: d.update(cameras=[]), "cameras: a non-empty list"),
     (lambda d: d["cameras"][1].pop("K"), r"cameras\[1\]: missing \['K'\]"),
@@ -265,7 +265,7 @@ def test_target_file_and_images(tmp_path):
 
 
 @pytest.mark.parametrize("text, match", [
-    ("format: heartcv.rig\n", "format 'heartcv.target' expected"),
+    ("format: heartcv.rig\n", "format: 'heartcv.target' expected"),
     ("type: charuco\nsquares: [3, 3]\nsquare_m: 0.01\nmarker_m: 0.02\ndictionary: DICT_4X4_50\n", "marker size"),
     ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: t.png\n", "image: a mapping"),
     ("[1, 2]\n", "mapping expected"),
