@@ -9,16 +9,20 @@ STAMP := $(VENV)/.installed
 # `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
 TORCH ?= torch==2.13.0
 
-.PHONY: test test-slow demo bench clean-venv
+.PHONY: test test-slow demo bench clean-venv fuzz
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q $(TORCH)
 	$(PY) -m pip install -q -e '.[dev,kornia]'
+	# the imports of the editable install must resolve (heartcv.tracker, heartcv.cli are mapped folders)
+	cd /tmp && $(abspath $(PY)) -c "import heartcv.tracker.files, heartcv.cli.main"
 	touch $(STAMP)
 
+# lint first (ruff: pycodestyle, pyflakes, bugbear, import order; pyproject.toml [tool.ruff]), then the fast tests
 test: $(STAMP)
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
 test-slow: $(STAMP)
@@ -29,6 +33,9 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks all
+
+fuzz: $(STAMP)
+	HEARTCV_FUZZ_REPORT=fuzz-report.json $(PY) -m pytest -q -m slow tests/test_fuzz_readers.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -34,6 +34,7 @@ import re
 import shutil
 import tempfile
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -608,7 +609,11 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path, max_bytes: in
     name = info.filename[:-4]
     if info.file_size > max_bytes + LIMITS["npy_header_bytes"] + 128:
         raise InputError(path, f"{info.file_size} bytes uncompressed; at most {max_bytes} accepted", name)
-    with zf.open(info) as f:
+    try:
+        f = zf.open(info)
+    except (zipfile.BadZipFile, NotImplementedError, RuntimeError, OSError, ValueError) as exc:  # RuntimeError:
+        raise InputError(path, f"cannot open the entry ({_short(str(exc), 120)})", name) from None  # encrypted
+    with f:
         try:
             version = fmt.read_magic(f)
             if version == (1, 0):
@@ -617,7 +622,7 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path, max_bytes: in
                 shape, fortran, dtype = fmt.read_array_header_2_0(f, max_header_size=LIMITS["npy_header_bytes"])
             else:
                 raise ValueError(f"unsupported .npy version {version}")
-        except (ValueError, EOFError, OSError, SyntaxError, TypeError, zipfile.BadZipFile) as exc:
+        except (ValueError, EOFError, OSError, SyntaxError, TypeError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(path, f"not a valid .npy header ({_short(str(exc), 120)})", name) from None
         if dtype.hasobject:
             raise InputError(path, "holds Python objects (a pickle); heartcv files hold numbers and text only", name)
@@ -632,7 +637,7 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path, max_bytes: in
                                    "or corrupt", name)
         try:
             data = f.read(nbytes + 1)
-        except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:  # CRC errors, bad deflate data
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError, zlib.error) as exc:  # CRC errors, bad deflate data
             raise InputError(path, f"corrupt entry ({_short(str(exc), 120)})", name) from None
         if len(data) != nbytes:
             raise InputError(path, f"{len(data)} bytes of data for a header of {nbytes}: truncated or corrupt", name)
