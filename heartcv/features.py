@@ -36,6 +36,10 @@ def saturation_mask(gray, level=250, grow=0) -> np.ndarray:
     return m.astype(bool)
 
 
+class RegionNotFound(ValueError):
+    """:func:`region_of_interest` found no (or too little) textured surface: a failed result, not a bug."""
+
+
 def region_of_interest(frames, *, margin=12, texture_factor=3.0, motion_px=0.5, min_area=2000):
     """The moving, textured surface seen in the first frames of one camera.
 
@@ -93,7 +97,7 @@ def region_of_interest(frames, *, margin=12, texture_factor=3.0, motion_px=0.5, 
     region = cv2.morphologyEx(region, cv2.MORPH_OPEN, k)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
     if n <= 1:
-        raise ValueError("region of interest: no textured surface found in the first frames")
+        raise RegionNotFound("region of interest: no textured surface found in the first frames")
     best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     mask = (labels == best).astype(np.uint8)
     # fill holes (highlights, fiducial dots) so that the region is one piece of surface
@@ -103,8 +107,8 @@ def region_of_interest(frames, *, margin=12, texture_factor=3.0, motion_px=0.5, 
         mask = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1)))
     mask = mask.astype(bool)
     if mask.sum() < min_area:
-        raise ValueError(f"region of interest: only {int(mask.sum())} px of textured surface found "
-                         f"(at least {min_area} expected)")
+        raise RegionNotFound(f"region of interest: only {int(mask.sum())} px of textured surface found "
+                             f"(at least {min_area} expected)")
     return mask, {"moving": moving_used, "area_px": int(mask.sum())}
 
 

@@ -71,7 +71,7 @@ class KorniaBackend:
     Parameters
     ----------
     device : str or torch.device, optional
-        'cpu', 'cuda', 'cuda:1', ... (default: 'cuda' if available, else 'cpu'). RuntimeError for a device that
+        'cpu', 'cuda', 'cuda:1', ... (default: 'cuda' if available, else 'cpu'). InputError for a device that
         torch does not know or that is not available.
     chunk : int
         At most this many samples per block on the device (:meth:`patch_ncc`: ``chunk // G`` patches).
@@ -82,11 +82,16 @@ class KorniaBackend:
     def __init__(self, device=None, chunk=1 << 21):
         import torch
 
+        from ..tracker.files import InputError
+
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.device = torch.device(device)
+        try:
+            self.device = torch.device(device)
+        except (RuntimeError, TypeError) as exc:  # torch's parser of device strings: the user's option
+            raise InputError(None, f"not a torch device ({exc})", "--device") from None
         if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise RuntimeError(f"device {device!r}: torch sees no CUDA device")
+            raise InputError(None, f"{device!r}: torch sees no CUDA device", "--device")
         if chunk < 1:
             raise ValueError(f"chunk: positive integer expected, got {chunk}")
         self.chunk = int(chunk)

@@ -77,7 +77,9 @@ def image(request, rng):
 def test_kornia_backend_identity(kb):
     assert kb.name == "kornia" and str(kb.device) == "cpu"
     assert get_backend("kornia").device.type in ("cpu", "cuda")
-    with pytest.raises(RuntimeError):
+    from heartcv.tracker.files import InputError
+
+    with pytest.raises(InputError, match="--device: not a torch device"):
         get_backend("kornia", "nope")
 
 

@@ -116,7 +116,7 @@ def _rig_dict(rng):
     (lambda d: d["cameras"][2].update(std={"fx": "x"}), "std"),
     (lambda d: d.update(rig_frame="cam1"), "not the identity"),
     (lambda d: d.update(rig_frame="camX"), "rig_frame"),
-    (lambda d: d["target"].update(square_m=-1), "target.square size"),
+    (lambda d: d["target"].update(square_m=-1), "target.square_m: square size"),
 ])
 def test_read_rig_errors_name_file_and_field(tmp_path, rng, edit, match):
     d = _rig_dict(rng)
