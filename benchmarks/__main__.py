@@ -13,7 +13,8 @@ from ._harness import environment
 from .estimators import bench_estimators
 from .fit import bench_fit
 from .measure import bench_measure
-from .model import SECTIONS as _MODEL_SECTIONS, blas_report
+from .model import SECTIONS as _MODEL_SECTIONS
+from .model import blas_report
 from .render import bench_render
 
 SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators, "fit": bench_fit, "render": bench_render,

@@ -22,21 +22,11 @@ class Timing:
     samples: list = field(default_factory=list)
     number: int = 1
 
-    @property
-    def median(self) -> float:
-        return statistics.median(self.samples)
-
-    @property
-    def min(self) -> float:
-        return min(self.samples)
-
-    @property
-    def max(self) -> float:
-        return max(self.samples)
-
-    @property
-    def repeats(self) -> int:
-        return len(self.samples)
+    # summaries of the samples (s), and their count
+    median = property(lambda self: statistics.median(self.samples))
+    min = property(lambda self: min(self.samples))
+    max = property(lambda self: max(self.samples))
+    repeats = property(lambda self: len(self.samples))
 
     def as_dict(self) -> dict:
         return {"median_s": self.median, "min_s": self.min, "max_s": self.max, "repeats": self.repeats,
@@ -95,7 +85,7 @@ def table(headers, rows, *, title: str | None = None) -> str:
     widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
 
     def line(r):
-        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
+        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
 
     out = []
     if title:

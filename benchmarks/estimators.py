@@ -506,8 +506,8 @@ def bench_estimators(*, quick: bool = False) -> dict:
             M = mdl.config.parameter_space().dim
             proxy = _CountingModel(mdl)
             o_bb = JointOptions.from_config(mdl.config, dense=True)
-            steps, walls, est = _run_steps({"bb": lambda m: run_joint(proxy, m, "ukf", options=o_bb)}, short, 1,
-                                           warm_frames=2)["bb"]
+            bb = {"bb": lambda m, proxy=proxy, o_bb=o_bb: run_joint(proxy, m, "ukf", options=o_bb)}
+            steps, walls, est = _run_steps(bb, short, 1, warm_frames=2)["bb"]
             # calls of the warm-up run (2 frames = 1 prediction) and the timed run (completed_steps - 1 predictions)
             per_predict = proxy.system_calls / (1 + (est.completed_steps - 1))
             record("black-box joint UKF", key, M, steps, walls, est, 2 * (M + n_l) + 1, 0, None,

@@ -9,16 +9,17 @@ the BLAS libraries (OpenCV keeps its own thread count, printed):
    ``benchmarks/.cache/phantom_sequence`` (or ``$HEARTCV_BENCH_SEQ``); a folder that already holds at least N
    complete frame triplets and ``rig_truth.yaml`` is reused. The render time is printed, not measured. The rig is
    the true one (``rig_truth.yaml``): the speed does not depend on the calibration.
-2. **The stage as the CLI runs it** (``cli/measure.py``, without writing the output files): ``open_frame_source``,
-   a ``FrameReader`` (2 decoding threads; it decodes the next triplet while the current one is processed), the
-   region of interest from frames 0, 3, ... 27 of the reference camera, then ``Measurer.step`` per triplet with the
-   CLI's defaults (``MeasureOptions`` with ``highpass_sigma=3``, 300 points, OpenCV backend). Runs: 3 (1 in
-   ``--quick``); the run with the median wall time is shown. Rates: *all frames* = N / wall from opening the
-   reader to the last step (ROI setup, initial detection and matching included; what the CLI reports as
-   ``frames_per_s``) and *steady state* = (N - 1) / time of frames 1 .. N-1 (without the one-off setup and first
-   detection; later re-detections stay in). Split per triplet: decode (time spent waiting for the reader),
-   tracking (high-pass prefilter + template LK with forward-backward and NCC checks), triangulation,
-   detection/matching (``Measurer.timings`` differences per step) and the rest of the loop.
+2. **The stage as the CLI runs it** (``heartcv.measure.measure_sequence``, the one frame loop that
+   ``cli/measure.py`` calls, without writing the output files): ``open_frame_source``, a ``FrameReader`` (2 decoding
+   threads; it decodes the next triplet while the current one is processed), the region of interest from frames 0,
+   3, ... 27 of the reference camera, then ``Measurer.step`` per triplet with the CLI's defaults (``MeasureOptions``
+   with ``highpass_sigma=3``, 300 points, OpenCV backend). Runs: 3 (1 in ``--quick``); the run with the median wall
+   time is shown. Rates: *all frames* = N / wall from opening the reader to the last step (ROI setup, initial
+   detection and matching included; what the CLI reports as ``frames_per_s``) and *steady state* = (N - 1) / time of
+   frames 1 .. N-1 (without the one-off setup and first detection; later re-detections stay in). Split per triplet:
+   decode (time spent waiting for the reader), tracking (high-pass prefilter + template LK with forward-backward and
+   NCC checks), triangulation, detection/matching (``Measurer.timings`` differences per step) and the rest of the
+   loop.
 3. **Baselines in the same run** (median of 3 passes over the N triplets, 1 in ``--quick``): (a) decoding only:
    ``cv2.imread(path, IMREAD_GRAYSCALE)`` of the 3 PNGs of a triplet in one thread and in 2 threads,
    ``heartcv.io.read_image`` (with its truncation and size checks) in one thread, and ``FrameReader`` iterated
@@ -107,51 +108,30 @@ def _options():
 
 
 def _run_stage(folder: Path, rig, n: int) -> dict:
-    """One run of the measurement stage as ``heartcv measure`` drives it (cli/measure.py), timed per frame."""
+    """One run of the measurement stage as ``heartcv measure`` drives it: a ``FrameReader`` fed to
+    :func:`heartcv.measure.measure_sequence` (the one frame loop), timed per frame."""
     from heartcv.backend import get_backend
     from heartcv.io import FrameReader, open_frame_source
-    from heartcv.measure import Measurer
+    from heartcv.measure import measure_sequence, reference_frames
 
     opts = _options()
-    ref = opts.ref_camera
-    be = get_backend("opencv", None)
     t_start = time.perf_counter()
     source = open_frame_source(folder, cameras=rig.names)
-    sizes = [c.size for c in rig.cameras]
-    per = []
-    with FrameReader(source, sizes=sizes, frames=range(n), workers=CLI_WORKERS) as reader:
-        first = []
-        for k in range(0, min(n, 30), 3):
-            imgs, _ = reader.read(k)
-            if imgs[ref] is not None:
-                first.append(imgs[ref])
+    with FrameReader(source, sizes=[c.size for c in rig.cameras], frames=range(n), workers=CLI_WORKERS) as reader:
+        first = reference_frames(reader.read, n, opts.ref_camera)
         t_roi_read = time.perf_counter()
-        measurer = Measurer(rig.cameras, opts, roi_frames=first, backend=be)
-        t_setup = time.perf_counter()
-        it = iter(reader)
-        prev = t_setup
-        for _ in range(n):
-            t0 = time.perf_counter()
-            k, imgs, problems = next(it)
-            t1 = time.perf_counter()
-            if problems or sum(im is not None for im in imgs) < 2:
-                raise RuntimeError(f"frame {k}: {problems}")
-            before = dict(measurer.timings)
-            seen = measurer.step(k, imgs)
-            t2 = time.perf_counter()
-            d = {key: measurer.timings[key] - before[key] for key in before}
-            # whether this step detected and matched new points (Measurer._spawn ran): it sets _last_spawn
-            spawned = measurer._last_spawn == len(per)
-            per.append({"frame": k, "total_s": t2 - prev, "decode_s": t1 - t0, "tracking_s": d["tracking"],
-                        "triangulation_s": d["triangulation"], "detection_s": d["detection"],
-                        "other_s": (t2 - prev) - (t1 - t0) - sum(d.values()), "seen": seen,
-                        "detected": bool(spawned)})
-            prev = t2
+        run = measure_sequence(reader, rig.cameras, opts, roi_frames=first, backend=get_backend("opencv", None))
     wall = time.perf_counter() - t_start
-    res = measurer.result()
-    return {"wall_s": wall, "setup_s": t_setup - t_start, "roi_read_s": t_roi_read - t_start,
-            "roi_compute_s": t_setup - t_roi_read, "roi_frames": len(first), "frames": per,
-            "roi": res.roi, "uv": res.uv, "tracks": int(res.point_ids.size),
+    if run.problems or run.skipped:
+        raise RuntimeError(f"{folder}: images left out: {run.problems}, frames skipped: {run.skipped}")
+    per = [{"frame": f.frame, "total_s": f.total_s, "decode_s": f.wait_s, "tracking_s": f.tracking_s,
+            "triangulation_s": f.triangulation_s, "detection_s": f.detection_s,
+            "other_s": f.total_s - f.wait_s - f.tracking_s - f.triangulation_s - f.detection_s, "seen": f.seen,
+            "detected": f.detected} for f in run.frames]
+    res = run.result
+    setup = (t_roi_read - t_start) + run.setup_s
+    return {"wall_s": wall, "setup_s": setup, "roi_read_s": t_roi_read - t_start, "roi_compute_s": run.setup_s,
+            "roi_frames": len(first), "frames": per, "roi": res.roi, "uv": res.uv, "tracks": int(res.point_ids.size),
             "points_mean": float(res.seen.sum(axis=1).mean()), "points_min": int(res.seen.sum(axis=1).min()),
             "redetections": int(sum(1 for f in per[1:] if f["detected"])),
             "sigma_px": float(res.sigma_px), "options": opts}

@@ -21,8 +21,7 @@ import time
 
 import numpy as np
 
-from ._harness import (blas_info, blas_lines, blas_threads, fmt_ratio, fmt_time, measure,
-                       single_threaded_blas, table)
+from ._harness import blas_info, blas_lines, blas_threads, fmt_ratio, fmt_time, measure, single_threaded_blas, table
 
 __all__ = ["MESHES", "SPEC_S", "mesh_config", "build", "bench_model", "bench_discretise", "bench_kf"]
 
@@ -203,7 +202,8 @@ def bench_model(*, quick: bool = False) -> dict:
     print()
     print(table(["mesh", "elements", "DOF", "n", "build_mesh", "assemble", "naive EV", "speed-up", "spec",
                  "assemble/spec", "build-rest"], rows,
-                title="Assembly alone: tracker.fem.assemble(build_mesh(g)) vs naive skfem ElementVector(ElementHex1())"))
+                title="Assembly alone: tracker.fem.assemble(build_mesh(g)) vs naive skfem "
+                      "ElementVector(ElementHex1())"))
     print("  speed-up = naive EV / assemble (baseline measured in this run; naive EV assembles only the three\n"
           "  matrices, assemble also the two load vectors). build-rest = build - build_mesh - assemble\n"
           "  (rim elimination + Ritz basis).")
@@ -240,7 +240,8 @@ def bench_discretise(*, quick: bool = False) -> dict:
             ref = m.system(theta, dt, "expm").A
             base = None
             for method in METHODS:
-                t = measure(lambda m=m, method=method: m.system(theta, dt, method), repeats=repeats, warmup=1,
+                t = measure(lambda m=m, method=method, theta=theta, dt=dt: m.system(theta, dt, method), repeats=repeats,
+                            warmup=1,
                             min_sample_s=min_sample)
                 if method == "modal":
                     base = t.median

@@ -1,26 +1,26 @@
-"""``heartcv calibrate``: calibrate a camera rig from views of a calibration target."""
+"""``heartcv calibrate``: calibrate a camera rig from views of a calibration target.
+
+Outputs (guarded before any work): the rig file, its COLMAP export folder ``STEM_colmap/`` (written with
+:func:`heartcv.tracker.files.atomic_folder`, producer ``heartcv calibrate``) and its Kalibr camchain
+``STEM_camchain.yaml``; none may be or contain FOLDER or the target file, or replace what heartcv did not write.
+"""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 import hashlib
 import logging
 import os
-from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import click
 
-
-from .options import BadInput, StageFailed, emit_json, json_opt, progress
+from .options import MAX_COUNT, BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, progress
 
 log = logging.getLogger(__name__)
 
-
-def _positive_float(ctx, param, value):
-    if value is not None and not value > 0:
-        raise click.BadParameter(f"must be positive, got {value}")
-    return value
+PRODUCER = "heartcv calibrate"
+MAX_JOBS = 1024
 
 
 @click.command()
@@ -32,14 +32,14 @@ def _positive_float(ctx, param, value):
 @click.option("--dist", "dist_size", type=click.Choice(("4", "5", "8")), default="5", show_default=True,
               help="Distortion model: 5 = k1 k2 p1 p2 k3, 8 = + rational k4 k5 k6, 4 = k1 k2 p1 p2 (k3 = 0; the "
                    "model Kalibr's camchain can hold).")
-@click.option("--max-view-rms", type=float, default=None, callback=_positive_float, metavar="PX",
+@click.option("--max-view-rms", type=Float(0, 1000, lo_open=True), default=None, metavar="PX",
               help="Reject camera views whose reprojection RMS exceeds PX pixels (besides the relative rule: "
                    "3 x the camera's median view RMS, never below 0.25 px).")
-@click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--every", type=Int(1, MAX_COUNT), default=1, show_default=True,
               help="Use every n-th instant (image name or video frame).")
-@click.option("--min-views", type=click.IntRange(min=3), default=4, show_default=True,
+@click.option("--min-views", type=Int(3, MAX_COUNT), default=4, show_default=True,
               help="Usable views needed per camera.")
-@click.option("--jobs", type=click.IntRange(min=1), default=None,
+@click.option("--jobs", type=Int(1, MAX_JOBS), default=None,
               help="Detection threads (default: the number of CPUs, at most 8).")
 @json_opt
 @click.pass_context
@@ -53,51 +53,59 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     differs from the rest of their camera, are named in a warning and skipped.
 
     Exit 1 when the calibration fails: the target is found in no image, a camera has too few usable views
-    (the counts per camera are given), or a camera shares no view with the others.
+    (the counts per camera are given), or a camera shares no view with the others. Exit 2 for bad input and for
+    outputs that would replace an input or something heartcv did not write.
     """
-    from heartcv.io import HeartcvIOError, read_target
+    from heartcv.io import read_target
 
     out = Path(output)
-    if out.suffix.lower() not in (".yaml", ".yml"):
-        raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
-    try:
-        spec = read_target(target_file)
-    except HeartcvIOError as exc:
-        raise BadInput(str(exc)) from None
+    exports = _guard(out, folder, target_file)
+    spec = read_target(target_file)
     cameras = _find_cameras(Path(folder))
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     jobs = jobs or min(os.cpu_count() or 1, 8)
     names = [c[0] for c in cameras]
     detections, sizes, view_names, used_files = _detect_all(cameras, spec, every, jobs, verbosity)
     rig = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views)
-    rig = type(rig)(rig.cameras, dict(rig.meta, producer="heartcv calibrate",
+    rig = type(rig)(rig.cameras, dict(rig.meta, producer=PRODUCER,
                                       inputs_hash=_inputs_hash(target_file, used_files)))
-    exports = _write(out, rig)
-    _summarise(rig, output, exports, as_json)
+    _summarise(rig, output, _write(out, rig, **exports), as_json)
+
+
+def _guard(out: Path, folder, target_file) -> dict:
+    """The export paths beside the rig file; exit 2, before any work, for a rig file that is not YAML, an output
+    that is or contains FOLDER or the target, or one that would replace what heartcv did not write."""
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise BadInput(f"-o/--output: a .yaml file expected, got {out}")
+    stem = out.with_suffix("")
+    colmap, kalibr = stem.parent / f"{stem.name}_colmap", stem.parent / f"{stem.name}_camchain.yaml"
+    labels = {"-o/--output": out, "COLMAP export": colmap, "Kalibr export": kalibr}
+    guard_outputs(labels, {"FOLDER": folder, "--target": target_file},
+                  files=[("-o/--output", out), ("Kalibr export", kalibr)],
+                  folders=[("COLMAP export", colmap, PRODUCER)])
+    return {"colmap": colmap, "kalibr": kalibr}
 
 
 # -- inputs -----------------------------------------------------------------------------------------------------
 def _find_cameras(folder: Path):
     """[(name, kind, paths)]: kind 'images' (paths: image files) or 'video' (paths: [video file])."""
-    from heartcv.io import HeartcvIOError, camera_entries
+    from heartcv.io import camera_entries
+    from heartcv.tracker.files import InputError
 
     if not folder.is_dir():
-        raise BadInput(f"{folder}: no such folder" if not folder.exists() else f"{folder}: not a folder")
-    try:
-        images, videos = camera_entries(folder)
-    except HeartcvIOError as exc:
-        raise BadInput(str(exc)) from None
+        raise InputError(folder, "no such folder" if not folder.exists() else "not a folder", "FOLDER")
+    images, videos = camera_entries(folder)
     found = {name for name, _ in images}
     for d in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
         if d.name not in found:
             log.warning("%s: no images, not a camera", d)
     cams = [(v.stem, "video", [v]) for v in videos] if videos else [(n, "images", fs) for n, fs in images]
     if len(cams) < 2:
-        raise BadInput(f"{folder}: {len(cams)} camera(s) found; at least 2 expected (one sub-folder of images or "
-                       f"one video file per camera)")
+        raise InputError(folder, f"{len(cams)} camera(s) found; at least 2 expected (one sub-folder of images or "
+                                 "one video file per camera)", "FOLDER")
     names = [c[0] for c in cams]
     if len(set(names)) != len(names) or any(any(ch.isspace() for ch in n) for n in names):
-        raise BadInput(f"{folder}: camera names must be unique and without spaces, got {names}")
+        raise InputError(folder, f"camera names must be unique and without spaces, got {names}", "FOLDER")
     return cams
 
 
@@ -130,11 +138,12 @@ def _detect_all(cameras, spec, every, jobs, verbosity):
 def _read_and_detect(path, spec):
     """(size, Detection) of an image file, or (None, error message) if it cannot be read."""
     from heartcv.detect import detect
-    from heartcv.io import HeartcvIOError, read_image
+    from heartcv.io import read_image
+    from heartcv.tracker.files import InputError
 
     try:
         img = read_image(path, mode="unchanged")
-    except HeartcvIOError as exc:
+    except InputError as exc:  # an unreadable image is skipped with a warning naming it
         return None, str(exc)
     return (img.shape[1], img.shape[0]), detect(img, spec)
 
@@ -143,13 +152,14 @@ def _detect_videos(cameras, spec, every, jobs, verbosity):
     import cv2
 
     from heartcv.detect import detect
+    from heartcv.tracker.files import InputError
 
     results, counts = {}, []
     with ThreadPoolExecutor(jobs) as pool:
-        for c, (name, _, (path,)) in enumerate(cameras):
+        for c, (_, _, (path,)) in enumerate(cameras):
             cap = cv2.VideoCapture(str(path))
             if not cap.isOpened():
-                raise BadInput(f"{path}: cannot open the video (unsupported or corrupt)")
+                raise InputError(path, "cannot open the video (unsupported or corrupt)")
             k, batch = 0, []
             try:
                 while True:
@@ -180,32 +190,16 @@ def _detect_videos(cameras, spec, every, jobs, verbosity):
 
 
 def _assemble(cameras, names, results, paths):
-    """Drop unreadable and odd-sized images (with warnings): detections [camera][instant], camera sizes,
-    instant names and the files used (for the inputs' hash)."""
-    detections, sizes, used = [], [], set()
-    for c, (cam, _, _) in enumerate(cameras):
-        mine = {v: r for (cc, v), r in results.items() if cc == c}
-        bad = {v: r[1] for v, r in mine.items() if r[0] is None}
-        for v, msg in sorted(bad.items()):
-            log.warning("skipped: %s", msg)
-        ok_sizes = Counter(r[0] for r in mine.values() if r[0] is not None)
-        if not ok_sizes:
-            log.warning("%s: none of its %d images could be read", cam, len(mine))
-        size = ok_sizes.most_common(1)[0][0] if ok_sizes else None
-        for v, r in sorted(mine.items()):
-            if r[0] is not None and r[0] != size:
-                log.warning("skipped: %s/%s: image is %dx%d px, the camera's other images are %dx%d px",
-                            cam, names[v], *r[0], *size)
-        dets = [None] * len(names)
-        for v, r in mine.items():
-            if size is not None and r[0] == size:
-                dets[v] = r[1]
-                used.add(paths[c, v])
-        detections.append(dets)
-        sizes.append(size)
-        log.info("%s: %d images, target found in %d", cam, len(mine),
-                 sum(d is not None and len(d) > 0 for d in dets))
-    return detections, sizes, names, sorted(used)
+    """:func:`heartcv.calibration.select_views` with its warnings logged: detections [camera][instant], camera
+    sizes, instant names and the files used (for the inputs' hash)."""
+    from heartcv.calibration import select_views
+
+    sel = select_views(results, [c[0] for c in cameras], names)
+    for msg in sel.warnings:
+        log.warning("%s", msg)
+    for (cam, _, _), (n, found) in zip(cameras, sel.counts):
+        log.info("%s: %d images, target found in %d", cam, n, found)
+    return sel.detections, sel.sizes, names, sorted({paths[key] for key in sel.used})
 
 
 def _inputs_hash(target_file, files):
@@ -235,22 +229,25 @@ def _calibrate(detections, spec, sizes, names, view_names, dist_size, max_view_r
         raise StageFailed(f"calibration failed: {exc}; no rig file written") from None
 
 
-def _write(out: Path, rig):
-    """Exports first, the rig file last (its presence marks a complete run); returns the exports written."""
+def _write(out: Path, rig, colmap: Path, kalibr: Path) -> dict:
+    """Exports first, the rig file last (its presence marks a complete run); returns the exports written. A
+    camchain left by an earlier run (heartcv's: the outputs were guarded) is removed when Kalibr cannot hold the
+    new rig, so it never contradicts it."""
+    from heartcv.calibration_rig import kalibr_limitation
     from heartcv.io import write_colmap, write_kalibr, write_rig
+    from heartcv.tracker.files import atomic_folder, is_heartcv_file
 
-    stem = out.with_suffix("")
-    colmap = stem.parent / f"{stem.name}_colmap"
-    kalibr = stem.parent / f"{stem.name}_camchain.yaml"
-    write_colmap(colmap, rig)
+    with atomic_folder(colmap, PRODUCER, {"rig_file": out.name}) as tmp:
+        write_colmap(tmp, rig)
     exports = {"colmap": str(colmap), "kalibr": None}
-    try:
+    why = kalibr_limitation(rig)
+    if why is None:
         write_kalibr(kalibr, rig)
         exports["kalibr"] = str(kalibr)
-    except ValueError as exc:  # Kalibr's radtan model holds k1 k2 p1 p2 only
-        log.warning("no Kalibr camchain written: %s", exc)
-        exports["kalibr_skipped"] = str(exc)
-        if kalibr.exists():  # a stale export from an earlier run would contradict the new rig
+    else:
+        log.warning("no Kalibr camchain written: %s", why)
+        exports["kalibr_skipped"] = why
+        if kalibr.is_file() and is_heartcv_file(kalibr):
             kalibr.unlink()
     write_rig(out, rig)
     return exports
@@ -271,4 +268,4 @@ def _summarise(rig, output, exports, as_json):
         emit_json(summary)
     else:
         base = ", ".join(f"{k} {v * 1e3:.2f} mm" for k, v in meta["baselines_m"].items())
-        log.warning("wrote %s: %d cameras, RMS %.3f px, baselines %s", output, len(cams), meta["rms_px"], base)
+        log.info("wrote %s: %d cameras, RMS %.3f px, baselines %s", output, len(cams), meta["rms_px"], base)

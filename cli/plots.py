@@ -187,7 +187,7 @@ def _has_positive(ax) -> bool:
 
 def save_png(fig, path, dpi: int = 150) -> None:
     """Write ``fig`` as a PNG atomically (temporary file, then rename)."""
-    from heartcv.tracker.io import atomic_path
+    from heartcv.tracker.files import atomic_path
 
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)

@@ -114,5 +114,6 @@ def html(doc, figures, folder: Path) -> str:
              "img{max-width:100%}figcaption{font-size:90%;color:#444}")
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>heartcv report</title>"
             f"<style>{style}</style></head><body><h1>heartcv report</h1><ul>{facts}</ul><h2>Estimators</h2>"
-            f"{table(*_rows(doc))}{ptable}<h2>Figures</h2>{''.join(figs)}<p>Numbers: <a href=\"metrics.json\">metrics.json</a>, "
+            f"{table(*_rows(doc))}{ptable}<h2>Figures</h2>{''.join(figs)}"
+            "<p>Numbers: <a href=\"metrics.json\">metrics.json</a>, "
             "<a href=\"summary.md\">summary.md</a>.</p></body></html>\n")

@@ -161,7 +161,9 @@ def nis_figure(series: dict, colors: dict, step_band, mean_band=None, level: flo
 
     Parameters
     ----------
-    series : dict label -> (times (K,), nis (K,), dof (K,))
+    series : dict label -> (times (K,), nis (K,), dof (K,), time average)
+        The time average is Σ NIS / Σ dof over the steps with a point seen (``nis_mean / nis_mean_dof`` of
+        :func:`tracker.metrics.estimator_metrics`), NaN if none.
     step_band : (times, lo (K,), hi (K,), dof (K,))
         Per-step band of the NIS (not divided), drawn divided by its dof.
     mean_band : (lo, hi, mean dof), optional
@@ -187,13 +189,11 @@ def nis_figure(series: dict, colors: dict, step_band, mean_band=None, level: flo
     ax.axhline(1.0, color="0.25", ls=":", lw=1.2, zorder=1)
     handles.append(Line2D([], [], color="0.25", ls=":", lw=1.2, label="expected (1)"))
     ys = [lo_d, hi_d]
-    for i, (label, (ts, nis, d)) in enumerate(series.items()):
+    for i, (label, (ts, nis, d, avg)) in enumerate(series.items()):
         c = colors[label]
         with np.errstate(invalid="ignore", divide="ignore"):
             y = np.where(np.asarray(d) >= 1, np.asarray(nis, float) / np.asarray(d, float), np.nan)
         ax.plot(ts, y, color=c, lw=1.6, marker="o", ms=2.5, zorder=_z(i))
-        ok = np.isfinite(y)
-        avg = np.sum(np.asarray(nis)[ok]) / np.sum(np.asarray(d)[ok]) if ok.any() else np.nan
         if np.isfinite(avg):
             _hline(ax, avg, ts, c)
         ys.append(y)
@@ -353,7 +353,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
                                                    for k, p in ps.items()}, colors, tr)
         save(fig, f"parameter_{name}.png", f"{TITLES[name][0].upper()}{TITLES[name][1:]}: posterior mean per "
              "estimator with its ±2σ band" + (" and the truth (dashed)." if tr else "."))
-    with_nis = {k: (p["times"], p["nis"], p["nis_dof"]) for k, p in ps.items() if np.isfinite(p["nis"]).any()}
+    with_nis = {k: (p["times"], p["nis"], p["nis_dof"], per[k]["nis_mean"] / per[k]["nis_mean_dof"])
+                for k, p in ps.items() if per[k]["nis_steps"]}
     if with_nis:
         ref = max(with_nis, key=lambda k: ps[k]["times"].size)
         band = per[ref]["nis_mean_band"]

@@ -1,4 +1,5 @@
-"""``heartcv simulate``: Monte-Carlo study of the parameter estimators on the model itself (paper §VI.A)."""
+"""``heartcv simulate``: Monte-Carlo study of the parameter estimators on the model itself (paper §VI.A;
+docs/cli.md §5)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,16 @@ import time
 
 import click
 
-from .options import BadInput, StageFailed, emit_json, json_opt, load_model, progress, seed_opt
+from .options import BadInput, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model, progress, seed_opt
 
 log = logging.getLogger(__name__)
 
 SUMMARY = "summary.json"
+PRODUCER = "heartcv simulate"
+MAX_RUNS = 10_000
+MAX_STEPS = 100_000
+MAX_RUN_STEPS = 10**7      # runs x steps: the study's arrays grow with it
+MAX_WORKERS = 1024
 
 
 def _estimators_handler(ctx, param, value):
@@ -30,17 +36,18 @@ def _estimators_handler(ctx, param, value):
 
 @click.command()
 @click.argument("model_file", type=click.Path(exists=True, dir_okay=False))
-@click.option("--runs", type=click.IntRange(min=2), default=50, show_default=True,
+@click.option("--runs", type=Int(2, MAX_RUNS), default=50, show_default=True,
               help="Monte-Carlo runs (the paper uses 50).")
-@click.option("--steps", type=click.IntRange(min=2), default=100, show_default=True,
+@click.option("--steps", type=Int(2, MAX_STEPS), default=100, show_default=True,
               help="Frames per run (at the model's frame rate).")
 @seed_opt
 @click.option("--estimators", default="ge,ukf,ekf,kf", show_default=True, callback=_estimators_handler,
               help="Comma-separated estimators: ge, ukf, ekf (joint) and kf (parameters held at the initial "
                    "guess).")
-@click.option("--workers", type=click.IntRange(min=1), default=2, show_default=True,
+@click.option("--workers", type=Int(1, MAX_WORKERS), default=2, show_default=True,
               help="Worker processes (1: run in this process).")
-@click.option("-o", "--output", type=click.Path(file_okay=False), required=True, help="Study folder.")
+@click.option("-o", "--output", type=click.Path(file_okay=False), required=True,
+              help="Study folder (replaces only a folder that heartcv simulate wrote).")
 @json_opt
 @click.pass_context
 def simulate(ctx, model_file, runs, steps, seed, estimators, workers, output, as_json):
@@ -48,29 +55,30 @@ def simulate(ctx, model_file, runs, steps, seed, estimators, workers, output, as
 
     Each run draws a random initial parameter guess, simulates fresh measurements with the model file's
     parameters and runs every estimator from the guess. Writes study.npz, the figures and summary.json
-    (error, consistency and timing statistics) into the folder given by -o."""
+    (error, consistency and timing statistics) into the folder given by -o, built beside it and renamed into
+    place when complete."""
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker import study as st
+    from heartcv.tracker.files import InputError
 
     t_start = time.perf_counter()
+    if runs * steps > MAX_RUN_STEPS:
+        raise BadInput(f"--runs {runs} x --steps {steps}: at most {MAX_RUN_STEPS} run-steps in one study")
+    guard_outputs({"-o/--output": output}, {"MODEL_FILE": model_file}, folders=[("-o/--output", output, PRODUCER)])
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0)
     m = load_model(model_file)
-    try:
-        estimators = st.check_estimators(estimators, m.config.parameter_space().dim)
-    except ValueError as exc:
-        raise BadInput(f"{model_file}: {exc}") from None
-
     with progress(range(runs), "runs", length=runs, verbosity=verbosity) as bar:
         tick = (lambda done, total: bar.update(1)) if hasattr(bar, "update") else None
         try:
+            estimators = st.check_estimators(estimators, m.config.parameter_space().dim)
             with threadpool_limits(1):  # small matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
                 study = st.run_study(m, runs=runs, steps=steps, seed=seed, estimators=estimators,
                                      workers=workers, progress=tick)
+        except InputError as exc:  # the model file's estimation section does not allow the study
+            raise exc.in_file(model_file) from None
         except FloatingPointError as exc:  # the truth simulation itself diverged
             raise StageFailed(f"{model_file}: {exc}; nothing written") from None
-        except ValueError as exc:
-            raise BadInput(f"{model_file}: {exc}") from None
     statistics = study.statistics()
     for name, s in statistics.items():
         if s.diverged:
@@ -88,41 +96,23 @@ def simulate(ctx, model_file, runs, steps, seed, estimators, workers, output, as
 
 
 def _write(out: Path, study, statistics, summary: dict, model_file, t_start: float) -> None:
-    """Write study.npz and the figures, then summary.json last, each file atomically; sets
-    ``summary['wall_s']``."""
-    from heartcv.tracker import __version__, study as st
-    from heartcv.tracker.io import STUDY_FORMAT, atomic_path, file_hash, write_study
+    """Write study.npz, the figures and summary.json into a folder built beside ``out`` and renamed to it when
+    complete (an older study there is replaced as a whole); sets ``summary['wall_s']``."""
+    from heartcv.tracker import __version__
+    from heartcv.tracker import study as st
+    from heartcv.tracker.files import atomic_folder
+    from heartcv.tracker.io import STUDY_FORMAT, file_hash, write_study
 
-    out.mkdir(parents=True, exist_ok=True)
-    old = _previous_files(out)
-    # summary.json marks a complete study: drop the old one before new files replace part of its set
-    (out / SUMMARY).unlink(missing_ok=True)
-    meta = {"producer": "heartcv simulate", "model": str(model_file),
-            "inputs_hash": {"model": file_hash(model_file)}}
-    write_study(out / "study.npz", st.arrays(study, statistics), meta)
-    files = ["study.npz"] + _figures(out, study, statistics) + [SUMMARY]
-    summary["wall_s"] = time.perf_counter() - t_start
-    doc = dict(summary)
-    doc.update(meta)
-    doc.update({"files": files, "format": STUDY_FORMAT[0], "format_version": STUDY_FORMAT[1],
-                "heartcv_version": __version__})
-    with atomic_path(out / SUMMARY) as tmp:
-        tmp.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-    for name in sorted(set(old) - set(files)):  # figures of the previous study that this one did not redo
-        if Path(name).name == name and name.endswith(".png"):
-            (out / name).unlink(missing_ok=True)
-
-
-def _previous_files(out: Path) -> list:
-    try:
-        doc = json.loads((out / SUMMARY).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return []
-    from heartcv.tracker.io import STUDY_FORMAT
-
-    if not isinstance(doc, dict) or doc.get("format") != STUDY_FORMAT[0]:
-        return []
-    return [f for f in doc.get("files", []) if isinstance(f, str)]
+    meta = {"producer": PRODUCER, "model": str(model_file), "inputs_hash": {"model": file_hash(model_file)}}
+    with atomic_folder(out, producer=PRODUCER) as tmp:
+        write_study(tmp / "study.npz", st.arrays(study, statistics), meta)
+        files = ["study.npz"] + _figures(tmp, study, statistics) + [SUMMARY]
+        summary["wall_s"] = time.perf_counter() - t_start
+        doc = dict(summary)
+        doc.update(meta)
+        doc.update({"files": files, "format": STUDY_FORMAT[0], "format_version": STUDY_FORMAT[1],
+                    "heartcv_version": __version__})
+        (tmp / SUMMARY).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n", encoding="utf-8")
 
 
 def _figures(out: Path, study, statistics) -> list:
@@ -180,13 +170,13 @@ def _log_table(summary):
         values = [s["rmse_initial"][n] for s in ests.values() if s["rmse_initial"][n] is not None]
         scale[n], unit[n] = si_scale(values, UNITS[NAMES.index(n)])
     head = "".join(f"  {n + ' [' + unit[n] + '] init->final':>28}" for n in names)
-    log.warning("%d runs x %d steps, seed %d, estimated %s -> %s (%.1f s)", summary["runs"], summary["steps"],
+    log.info("%d runs x %d steps, seed %d, estimated %s -> %s (%.1f s)", summary["runs"], summary["steps"],
                 summary["seed"], ", ".join(names) or "none", summary["output"], summary["wall_s"])
-    log.warning("%-4s %4s%s  %8s %17s %6s %8s %8s", "est", "div", head, "ANEES", "band", "in", "NIS/dof",
-                "ms/step")
+    log.info("%-4s %4s%s  %8s %17s %6s %8s %8s", "est", "div", head, "ANEES", "band", "in", "NIS/dof",
+             "ms/step")
     for e, s in ests.items():
         cols = "".join(f"  {_fmt(s['rmse_initial'][n], scale[n]) + ' -> ' + _fmt(s['rmse_final'][n], scale[n]):>28}"
                        for n in names)
         band = "-" if s["anees_band"] is None else f"[{s['anees_band'][0]:.3g}, {s['anees_band'][1]:.3g}]"
-        log.warning("%-4s %4d%s  %8s %17s %6s %8s %8s", e, s["diverged"], cols, _fmt(s["anees"]), band,
-                    _fmt(s["anees_in_band_fraction"]), _fmt(s["nis_per_dof_mean"]), _fmt(s["step_ms_median"]))
+        log.info("%-4s %4d%s  %8s %17s %6s %8s %8s", e, s["diverged"], cols, _fmt(s["anees"]), band,
+                 _fmt(s["anees_in_band_fraction"]), _fmt(s["nis_per_dof_mean"]), _fmt(s["step_ms_median"]))

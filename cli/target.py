@@ -7,13 +7,13 @@ from pathlib import Path
 
 import click
 
-from .options import BadInput, emit_json, json_opt
+from .options import BadInput, Float, emit_json, guard_outputs, json_opt
 
 log = logging.getLogger(__name__)
 
-
 class GridSize(click.ParamType):
-    """``COLSxROWS`` (e.g. ``11x8``) -> (cols, rows)."""
+    """``COLSxROWS`` (e.g. ``11x8``) -> (cols, rows), each in 1 .. ``heartcv.targets.MAX_SQUARES`` (TargetSpec
+    refuses fewer than 3 with the reason)."""
 
     name = "COLSxROWS"
 
@@ -25,13 +25,11 @@ class GridSize(click.ParamType):
             cols, rows = (int(p) for p in parts)
         except ValueError:
             self.fail(f"COLSxROWS expected (e.g. 11x8), got {value!r}", param, ctx)
+        from heartcv.targets import MAX_SQUARES
+
+        if not (1 <= cols <= MAX_SQUARES and 1 <= rows <= MAX_SQUARES):
+            self.fail(f"{cols}x{rows}: 1 to {MAX_SQUARES} each way expected", param, ctx)
         return cols, rows
-
-
-def _positive(ctx, param, value):
-    if value is not None and not value > 0:
-        raise click.BadParameter(f"must be positive, got {value}")
-    return value
 
 
 @click.command()
@@ -41,16 +39,17 @@ def _positive(ctx, param, value):
               help="ChArUco: squares across x down (e.g. 11x8).")
 @click.option("--inner-corners", type=GridSize(), default=None, metavar="COLSxROWS",
               help="Chessboard: inner corners across x down (OpenCV's pattern size, e.g. 9x6).")
-@click.option("--square-mm", type=float, required=True, callback=_positive, help="Square side in mm.")
-@click.option("--marker-mm", type=float, default=None, callback=_positive,
+@click.option("--square-mm", type=Float(0, 1000, lo_open=True, hi_open=True), required=True,
+              help="Square side in mm.")
+@click.option("--marker-mm", type=Float(0, 1000, lo_open=True, hi_open=True), default=None,
               help="ChArUco: marker side in mm (smaller than the square).")
 @click.option("--dict", "dictionary", default="DICT_5X5_250", show_default=True,
               help="ChArUco: ArUco dictionary (OpenCV name, e.g. DICT_5X5_250, DICT_6X6_250).")
 @click.option("--legacy", is_flag=True,
               help="ChArUco: OpenCV's legacy pattern (boards made before OpenCV 4.6 with an even number of rows).")
-@click.option("--dpi", type=float, default=300.0, show_default=True, callback=_positive,
+@click.option("--dpi", type=Float(0, 10000, lo_open=True), default=300.0, show_default=True,
               help="Requested print resolution; adjusted so that every square is a whole number of pixels.")
-@click.option("--margin-mm", type=float, default=None,
+@click.option("--margin-mm", type=Float(0, 1000, hi_open=True), default=None,
               help="White margin around the squares in mm (default: one square).")
 @click.option("--name", default=None, help="Target name (default: the output file's stem).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
@@ -64,37 +63,17 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
     of pixels (e.g. 12 mm squares at 300 dpi: 298.45 dpi, 141 px). Print the PDF at 100 % (actual size).
     """
     from heartcv.io import write_board_image, write_target
-    from heartcv.targets import INCH_M, TargetSpec, render_board
+    from heartcv.targets import INCH_M, render_board
 
     out = Path(output)
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
-    if kind == "charuco":
-        if inner_corners is not None:
-            raise BadInput("--inner-corners applies to chessboards; a ChArUco board is given by --squares")
-        if squares is None:
-            raise BadInput("--squares is required for --type charuco (e.g. --squares 11x8)")
-        if marker_mm is None:
-            raise BadInput("--marker-mm is required for --type charuco")
-        grid = squares
-    else:
-        if squares is not None:
-            raise BadInput("--squares applies to ChArUco boards; a chessboard is given by --inner-corners")
-        if inner_corners is None:
-            raise BadInput("--inner-corners is required for --type chessboard (e.g. --inner-corners 9x6)")
-        if marker_mm is not None or legacy:
-            raise BadInput("--marker-mm and --legacy apply to ChArUco boards only")
-        grid = inner_corners
-    if margin_mm is not None and margin_mm < 0:
-        raise BadInput(f"--margin-mm: must be >= 0, got {margin_mm}")
-    try:
-        spec = TargetSpec(kind, grid, square_mm / 1000, marker_mm / 1000 if kind == "charuco" else None,
-                          dictionary.upper() if kind == "charuco" else None, legacy, name or out.stem)
-        margin_m = spec.square_m if margin_mm is None else margin_mm / 1000
-        image, px_per_m = render_board(spec, dpi=dpi, margin_m=margin_m)
-    except ValueError as exc:
-        raise BadInput(str(exc)) from None
     png, pdf = out.with_suffix(".png"), out.with_suffix(".pdf")
+    guard_outputs({}, {}, files=[("-o/--output", out), ("-o/--output (PNG)", png), ("-o/--output (PDF)", pdf)])
+    grid = _grid(kind, squares, inner_corners, marker_mm, legacy)
+    spec = _spec(kind, grid, square_mm, marker_mm, dictionary, legacy, name or out.stem)
+    margin_m = spec.square_m if margin_mm is None else margin_mm / 1000
+    image, px_per_m = render_board(spec, dpi=dpi, margin_m=margin_m)
     h, w = image.shape
     size_m = (w / px_per_m, h / px_per_m)
     write_board_image(png, pdf, image, px_per_m * INCH_M, size_m)
@@ -115,6 +94,35 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
         emit_json(summary)
     else:
         bw, bh = summary["board_size_mm"]
-        log.warning("wrote %s (+ %s, %s): %s %dx%d squares, %.1f x %.1f mm at %.6g dpi (%d px per %g mm square); "
-                    "print the PDF at 100 %%", output, png.name, pdf.name, spec.type, cols, rows, bw, bh,
-                    summary["dpi"], summary["square_px"], spec.square_m * 1e3)
+        log.info("wrote %s (+ %s, %s): %s %dx%d squares, %.1f x %.1f mm at %.6g dpi (%d px per %g mm square); "
+                 "print the PDF at 100 %%", output, png.name, pdf.name, spec.type, cols, rows, bw, bh,
+                 summary["dpi"], summary["square_px"], spec.square_m * 1e3)
+
+
+def _grid(kind, squares, inner_corners, marker_mm, legacy):
+    """The board's grid from the options of its type; exit 2 for a missing or conflicting option."""
+    if kind == "charuco":
+        if inner_corners is not None:
+            raise BadInput("--inner-corners applies to chessboards; a ChArUco board is given by --squares")
+        if squares is None:
+            raise BadInput("--squares is required for --type charuco (e.g. --squares 11x8)")
+        if marker_mm is None:
+            raise BadInput("--marker-mm is required for --type charuco")
+        return squares
+    if squares is not None:
+        raise BadInput("--squares applies to ChArUco boards; a chessboard is given by --inner-corners")
+    if inner_corners is None:
+        raise BadInput("--inner-corners is required for --type chessboard (e.g. --inner-corners 9x6)")
+    if marker_mm is not None or legacy:
+        raise BadInput("--marker-mm and --legacy apply to ChArUco boards only")
+    return inner_corners
+
+
+def _spec(kind, grid, square_mm, marker_mm, dictionary, legacy, name):
+    """The target the options describe. TargetSpec refuses a marker not smaller than the square, an unknown
+    dictionary or one with too few markers, fewer than 3 squares a way (InputError naming the field: exit 2)."""
+    from heartcv.targets import TargetSpec
+
+    charuco = kind == "charuco"
+    return TargetSpec(kind, grid, square_mm / 1000, marker_mm / 1000 if charuco else None,
+                      dictionary.upper() if charuco else None, legacy, name)

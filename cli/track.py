@@ -1,14 +1,14 @@
-"""``heartcv track``: run an estimator over a measurement file."""
+"""``heartcv track``: run an estimator over a measurement file (docs/cli.md §4)."""
 
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
+import sys
 
 import click
 
-from .options import BadInput, StageFailed, emit_json, json_opt, load_model
+from .options import BadInput, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model
 
 log = logging.getLogger(__name__)
 
@@ -16,11 +16,19 @@ ESTIMATORS = ("kf", "ge", "ukf", "ekf")
 ESTIMATOR_HELP = ("kf: Kalman filter with the model file's parameters held fixed; ge: Rao-Blackwellised Gaussian "
                   "estimator of state and parameters (the paper's); ukf / ekf: joint unscented / extended Kalman "
                   "filters on the augmented state (baselines). See docs/estimators.md.")
+MAX_NODES = 51  # as estimation.ge.nodes of the model file
 
 
-def _partial_path(output) -> Path:
+def partial_path(output) -> Path:
+    """Where a diverged run's steps go: OUTPUT with ``.partial`` before the suffix (appended without one)."""
     p = Path(output)
     return p.with_name(p.name[: -len(p.suffix)] + ".partial" + p.suffix if p.suffix else p.name + ".partial")
+
+
+def _odd_nodes(ctx, param, value):
+    if value is not None and value % 2 == 0:
+        raise click.BadParameter(f"D must be an odd integer >= 3 (shared centre node), got {value}")
+    return value
 
 
 @click.command()
@@ -28,8 +36,8 @@ def _partial_path(output) -> Path:
 @click.option("--model", "model_file", type=click.Path(exists=True, dir_okay=False), required=True,
               help="Model file (YAML).")
 @click.option("--estimator", type=click.Choice(ESTIMATORS), default="kf", show_default=True, help=ESTIMATOR_HELP)
-@click.option("--nodes", "nodes", type=int, default=None,
-              help="GE: Dirac nodes per parameter axis D (odd, >= 3; default from the model file, 5).")
+@click.option("--nodes", "nodes", type=Int(3, MAX_NODES), default=None, callback=_odd_nodes,
+              help="GE: Dirac nodes per parameter axis D (odd, 3..51; default from the model file, 5).")
 @click.option("--truncation", type=click.Choice(("sequential", "tallis", "none")), default=None,
               help="Box truncation of the parameters after every prediction and update: for ge the default comes "
                    "from the model file (sequential); ukf and ekf do not truncate unless asked.")
@@ -52,131 +60,170 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     """
     import numpy as np
 
-    from heartcv.tracker.io import FileFormatError, file_hash, read_measurements, read_parameters, write_estimates
-    from heartcv.tracker.joint import JointOptions, run_joint
-    from heartcv.tracker.params import NAMES
-    from heartcv.tracker.tracking import EstimationDiverged, run_kalman
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.io import file_hash, read_measurements, read_parameters, write_estimates
+    from heartcv.tracker.tracking import EstimationDiverged
 
-    try:
-        meas = read_measurements(measurements)
-    except FileFormatError as exc:
-        raise BadInput(str(exc)) from None
+    _check_scope(estimator, nodes, truncation)
+    part = partial_path(output)
+    guard_outputs({"-o/--output": output, "the partial file of -o": part},
+                  {"MEASUREMENTS": measurements, "--model": model_file, "--params": params_file},
+                  files=[("-o/--output", output), ("the partial file of -o", part)])
+    meas = read_measurements(measurements)
     m = load_model(model_file)
-    fitted = None
-    if params_file is not None:
-        try:
-            fitted = read_parameters(params_file)
-        except FileFormatError as exc:
-            raise BadInput(str(exc)) from None
-        was_rig = meas.frame == "rig"
-        meas = _apply_params_registration(meas, fitted, params_file, measurements)
-        if was_rig:
-            # measured references are birth-frame (deformed) positions: use the fit's undeformed offsets
-            from heartcv.tracker.fit import undeformed_references
-
-            try:
-                meas = undeformed_references(m, meas, fitted.theta, fitted.frames)
-            except ValueError as exc:
-                raise BadInput(f"{measurements}: {exc}") from None
-            if meas.meta.get("dropped_points"):
-                log.info("%d points seen in fewer than two of the fit's %d frames were left out",
-                         len(meas.meta["dropped_points"]), fitted.frames)
-        fitted_model = (fitted.meta.get("inputs_hash") or {}).get("model")
-        if fitted_model is not None and fitted_model != file_hash(model_file):
-            log.warning("%s was fitted with another model file than %s", params_file, model_file)
-    if estimator == "kf" and truncation is not None:
-        raise BadInput("--truncation applies to the joint estimators (ge, ukf, ekf) only")
-    if estimator != "ge" and nodes is not None:
-        raise BadInput("--nodes applies to the GE only")
-    options = None
-    if estimator != "kf":
-        if not m.config.estimation.estimate:
-            raise BadInput(f"{model_file}: estimation.estimate is empty; {estimator} needs at least one parameter")
-        try:
-            if estimator == "ge":
-                options = JointOptions.from_config(m.config, nodes=nodes, truncation=truncation, joseph=joseph)
-            else:
-                options = JointOptions.from_config(m.config, baseline_truncation=truncation, joseph=joseph)
-        except ValueError as exc:
-            raise BadInput(f"--nodes/--truncation: {exc}") from None
-    from threadpoolctl import threadpool_limits
-
-    verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
+    fitted = read_parameters(params_file) if params_file is not None else None
+    options = _joint_options(m, model_file, estimator, nodes, truncation, joseph)
     meta = {"producer": "heartcv track", "model": str(model_file),
             "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
     theta0 = prior_std = None
     if fitted is not None:
-        from heartcv.tracker.fit import tracking_prior
-
+        meas = _with_params(m, meas, fitted, measurements, params_file, model_file)
         meta["params"] = str(params_file)
         meta["inputs_hash"]["params"] = file_hash(params_file)
         if isinstance(meas.meta.get("registration"), dict):     # rig-frame file: where the patch frame lies
             meta["patch_from_rig"] = meas.meta["registration"].get("patch_from_rig")
         if estimator != "kf":
-            theta0, prior_std, source = tracking_prior(m.config, fitted)
-            meta["prior_source"] = source
+            theta0, prior_std, meta["prior_source"] = _prior(m, fitted, params_file)
+    verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     try:
-        with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
-            if estimator == "kf":
-                est = run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph)
-            else:
-                with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
-                        if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
-                    est = run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
-                                    progress=lambda done, total: bar.update(1))
+        est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity)
+    except InputError as exc:  # the measurement file does not fit the model (validated by the core)
+        raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
         raise StageFailed(f"{estimator}: numerical failure ({exc}); no estimate file written") from None
     except EstimationDiverged as exc:
-        where = ""
-        if exc.partial is not None and exc.partial.completed_steps > 0:
-            part = _partial_path(output)
-            write_estimates(part, exc.partial, dict(meta, partial=True))
-            where = f"; the {exc.partial.completed_steps} steps done were written to {part} (marked partial)"
-        raise StageFailed(f"{estimator} diverged at step {exc.step} (time {meas.times[exc.step]:.4g} s): the "
-                          f"estimate became non-finite{where}; no estimate file written to {output}") from None
-    except ValueError as exc:
-        raise BadInput(f"{measurements}: {exc}") from None
+        raise StageFailed(_diverged(exc, estimator, meas, meta, part, output)) from None
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
     write_estimates(output, est, meta)
-    seen = np.isfinite(est.nis)
+    _report(est, estimator, output, as_json)
+
+
+def _check_scope(estimator, nodes, truncation) -> None:
+    if estimator == "kf" and truncation is not None:
+        raise BadInput("--truncation applies to the joint estimators (ge, ukf, ekf) only")
+    if estimator != "ge" and nodes is not None:
+        raise BadInput("--nodes applies to the GE only")
+
+
+def _joint_options(m, model_file, estimator, nodes, truncation, joseph):
+    """JointOptions of the joint estimators (None for kf); the options were validated by click."""
+    from heartcv.tracker.joint import JointOptions
+
+    if estimator == "kf":
+        return None
+    if not m.config.estimation.estimate:
+        raise BadInput(f"{model_file}: estimation.estimate is empty; {estimator} needs at least one parameter")
+    if estimator == "ge":
+        return JointOptions.from_config(m.config, nodes=nodes, truncation=truncation, joseph=joseph)
+    return JointOptions.from_config(m.config, baseline_truncation=truncation, joseph=joseph)
+
+
+def _with_params(m, meas, fitted, measurements, params_file, model_file):
+    """The measurement set as the fit saw it: the stored registration applied to a rig-frame file, whose
+    birth-frame references are then replaced by the fit's undeformed offsets."""
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.fit import undeformed_references
+    from heartcv.tracker.io import file_hash
+    from heartcv.tracker.registration import apply_stored_registration
+
+    fitted_model = (fitted.meta.get("inputs_hash") or {}).get("model")
+    if fitted_model is not None and fitted_model != file_hash(model_file):
+        log.warning("%s was fitted with another model file than %s", params_file, model_file)
+    if meas.frame != "rig":
+        if fitted.registration is not None:
+            log.warning("%s holds a registration but %s is in the patch frame: not applied", params_file,
+                        measurements)
+        return meas
+    if fitted.registration is None:
+        raise BadInput(f"{measurements}: rig-frame measurements, but {params_file} holds no registration (it was "
+                       "fitted to patch-frame measurements)")
+    try:
+        meas = apply_stored_registration(meas, fitted.registration, str(params_file))
+    except InputError as exc:
+        raise exc.in_file(params_file) from None
+    # measured references are birth-frame (deformed) positions: use the fit's undeformed offsets
+    try:
+        meas = undeformed_references(m, meas, fitted.theta, fitted.frames)
+    except InputError as exc:
+        raise exc.in_file(measurements) from None
+    if meas.meta.get("dropped_points"):
+        log.info("%d points seen in fewer than two of the fit's %d frames were left out",
+                 len(meas.meta["dropped_points"]), fitted.frames)
+    return meas
+
+
+def _prior(m, fitted, params_file):
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.fit import tracking_prior
+
+    try:
+        return tracking_prior(m.config, fitted)
+    except InputError as exc:
+        raise exc.in_file(params_file) from None
+
+
+def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity):
+    from threadpoolctl import threadpool_limits
+
+    from heartcv.tracker.joint import run_joint
+    from heartcv.tracker.tracking import run_kalman
+
+    with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
+        if estimator == "kf":
+            return run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph)
+        with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
+                if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
+            return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
+                             progress=lambda done, total: bar.update(1))
+
+
+def _diverged(exc, estimator, meas, meta, part, output) -> str:
+    """Write the steps done of a diverged run to the partial file; the failure message."""
+    from heartcv.tracker.io import write_estimates
+
+    where = ""
+    if exc.partial is not None and exc.partial.completed_steps > 0:
+        write_estimates(part, exc.partial, dict(meta, partial=True))
+        where = f"; the {exc.partial.completed_steps} steps done were written to {part} (marked partial)"
+    return (f"{estimator} diverged at step {exc.step} (time {meas.times[exc.step]:.4g} s): the estimate became "
+            f"non-finite{where}; no estimate file written to {output}")
+
+
+def _report(est, estimator, output, as_json) -> None:
+    """The summary: JSON on stdout, or one INFO line."""
+    import math
+
+    from heartcv.tracker.metrics import nis_statistics, step_time_statistics
+    from heartcv.tracker.params import NAMES
+
+    def finite(v):
+        return float(v) if math.isfinite(v) else None
+
+    nis = nis_statistics(est.nis, est.nis_dof)
     summary = {
         "estimator": estimator,
         "steps": int(est.completed_steps),
-        "nis_mean": float(np.mean(est.nis[seen])) if seen.any() else None,
-        "nis_dof_mean": float(np.mean(est.nis_dof[seen])) if seen.any() else None,
-        "prediction_rmse_m": est.prediction_rmse() if np.isfinite(est.prediction_rmse()) else None,
-        "step_ms_median": float(np.median(est.step_time[1:] if est.step_time.size > 1 else est.step_time) * 1e3),
-        "theta_final": dict(zip(NAMES, map(float, est.theta[-1]))),
-        "theta_std_final": dict(zip(NAMES, map(float, est.theta_std[-1]))),
+        "nis_mean": finite(nis["mean"]),
+        "nis_dof_mean": finite(nis["mean_dof"]),
+        "prediction_rmse_m": finite(est.prediction_rmse()),
+        "step_ms_median": step_time_statistics(est.step_time)["median"] * 1e3,
+        "theta_final": dict(zip(NAMES, map(float, est.theta[-1]), strict=True)),
+        "theta_std_final": dict(zip(NAMES, map(float, est.theta_std[-1]), strict=True)),
         "truncation_events": int(est.truncation_events.sum()),
         "estimated": list(est.meta.get("estimated", [])),
         "output": output,
     }
     if as_json:
         emit_json(summary)
-    else:
-        rmse = summary["prediction_rmse_m"]
-        msg = f"wrote {output}: {summary['steps']} steps, prediction RMSE " + (
-            f"{rmse * 1e3:.4g} mm" if rmse is not None else "n/a (no point seen after frame 0)")
-        if estimator != "kf":
-            msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
-                                    for n in summary["estimated"])
-        log.warning(msg)
-
-
-def _apply_params_registration(meas, fitted, params_file, measurements):
-    """Rig-frame measurements: apply the registration stored by heartcv fit; patch frame: nothing to do."""
-    if meas.frame == "rig":
-        if fitted.registration is None:
-            raise BadInput(f"{measurements}: rig-frame measurements, but {params_file} holds no registration "
-                           "(it was fitted to patch-frame measurements)")
-        from .fit import apply_stored_registration
-
-        return apply_stored_registration(meas, fitted.registration, params_file)
-    if fitted.registration is not None:
-        log.warning("%s holds a registration but %s is in the patch frame: not applied", params_file, measurements)
-    return meas
+        return
+    rmse = summary["prediction_rmse_m"]
+    msg = f"wrote {output}: {summary['steps']} steps, prediction RMSE " + (
+        f"{rmse * 1e3:.4g} mm" if rmse is not None else "n/a (no point seen after frame 0)")
+    if estimator != "kf":
+        msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
+                                for n in summary["estimated"])
+    log.info(msg)
 
 
 class _NoBar:

@@ -18,6 +18,7 @@ References
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,8 @@ import numpy as np
 from .detect import Detection
 
 __all__ = ["CalibrationError", "IntrinsicsResult", "calibrate_intrinsics", "outlier_views", "usable_view",
-           "describe_target", "target_mismatch", "DIST_MODELS", "MIN_VIEWS", "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
+           "describe_target", "target_mismatch", "ViewSelection", "select_views", "DIST_MODELS", "MIN_VIEWS",
+           "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
 
 DIST_MODELS = (4, 5, 8)  # (k1, k2, p1, p2) [COLMAP OPENCV, Kalibr radtan], + k3, + rational k4..k6
 MIN_VIEWS = 4            # usable views needed per camera
@@ -78,6 +80,62 @@ class IntrinsicsResult:
     rejected: np.ndarray
     cam_from_board: np.ndarray
     std: np.ndarray
+
+
+@dataclass(frozen=True)
+class ViewSelection:
+    """The views a calibration uses (:func:`select_views`).
+
+    Attributes
+    ----------
+    detections : list
+        Per camera, per view: the Detection, or None where the image was missing, unreadable or of an odd size.
+    sizes : list
+        Per camera its image size (width, height): the most common one of its readable images; None if none.
+    used : list of (int, int)
+        (camera, view) of the images used, sorted.
+    warnings : list of str
+        Images left out (unreadable, odd size: named) and cameras none of whose images could be read.
+    counts : list of (int, int)
+        Per camera: images read, and views whose image shows the target.
+    """
+
+    detections: list
+    sizes: list
+    used: list
+    warnings: list
+    counts: list
+
+
+def select_views(results: dict, camera_names, view_names) -> ViewSelection:
+    """Drop unreadable images and images whose size differs from the rest of their camera.
+
+    Parameters
+    ----------
+    results : dict of {(camera, view): (size, detection)}
+        Per image read: ``size`` (width, height) and its Detection, or ``(None, message)`` for an image that could
+        not be read (the message names it).
+    camera_names, view_names : sequence of str
+    """
+    detections, sizes, used, warnings, counts = [], [], [], [], []
+    for c, cam in enumerate(camera_names):
+        mine = {v: r for (cc, v), r in results.items() if cc == c}
+        warnings += [f"skipped: {r[1]}" for _, r in sorted(mine.items()) if r[0] is None]
+        ok_sizes = Counter(r[0] for r in mine.values() if r[0] is not None)
+        if not ok_sizes:
+            warnings.append(f"{cam}: none of its {len(mine)} images could be read")
+        size = ok_sizes.most_common(1)[0][0] if ok_sizes else None
+        warnings += [f"skipped: {cam}/{view_names[v]}: image is {r[0][0]}x{r[0][1]} px, the camera's other images "
+                     f"are {size[0]}x{size[1]} px" for v, r in sorted(mine.items()) if r[0] not in (None, size)]
+        dets = [None] * len(view_names)
+        for v, r in sorted(mine.items()):
+            if size is not None and r[0] == size:
+                dets[v] = r[1]
+                used.append((c, v))
+        detections.append(dets)
+        sizes.append(size)
+        counts.append((len(mine), sum(d is not None and len(d) > 0 for d in dets)))
+    return ViewSelection(detections, sizes, used, warnings, counts)
 
 
 def usable_view(det: Detection | None, spec) -> bool:

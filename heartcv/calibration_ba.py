@@ -176,7 +176,7 @@ class RigProblem:
         ``J^T r`` with the camera block first."""
         r = self.residuals(s) if r is None else r
         J_intr, J_cam, J_view = self.jacobian(s)
-        C, V, nc = self.n_cam, self.n_view, self.n_cam_params
+        V, nc = self.n_view, self.n_cam_params
         U = np.zeros((nc, nc))
         W = np.zeros((nc, V, 6))
         gc = np.zeros(nc)

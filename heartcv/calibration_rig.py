@@ -28,12 +28,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import (MIN_VIEWS, OUTLIER_FACTOR, CalibrationError, calibrate_intrinsics, describe_target,
-                          outlier_views, target_mismatch, usable_view)
+from .calibration import (
+    MIN_VIEWS,
+    OUTLIER_FACTOR,
+    CalibrationError,
+    calibrate_intrinsics,
+    describe_target,
+    outlier_views,
+    target_mismatch,
+    usable_view,
+)
 from .calibration_ba import RigProblem, bundle_adjust
 from .camera import Camera, Rig, invert_pose
 
-__all__ = ["RigCalibration", "calibrate_rig", "calibrate_rig_detailed", "robust_mean_pose"]
+__all__ = ["RigCalibration", "calibrate_rig", "calibrate_rig_detailed", "robust_mean_pose", "kalibr_limitation"]
 
 _DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # OpenCV order (docs/formats.md, rig file)
 _SOLVER = "Levenberg-Marquardt, Schur complement, complex-step Jacobian (heartcv.calibration_ba)"
@@ -338,3 +346,18 @@ def _result(prob, ba, names, view_names, image_sizes, used, view_rms, intr, spec
         "view_names": list(view_names),
     }
     return RigCalibration(Rig(tuple(cameras), meta), rig_from_board, used.copy(), view_rms)
+
+
+def kalibr_limitation(rig: Rig) -> str | None:
+    """Why a Kalibr camchain (``pinhole`` cameras without skew, ``radtan`` distortion k1 k2 p1 p2) cannot hold
+    the rig, or None when it can (``heartcv calibrate`` then writes one; docs/cli.md §8, Kalibr export)."""
+    for cam in rig.cameras:
+        if cam.K[0, 1] != 0:
+            return f"{cam.name}: K has skew {cam.K[0, 1]}; Kalibr's pinhole model has none"
+        d = np.asarray(cam.dist, float)
+        if d.size > 4 and np.any(d[4:] != 0):
+            names = _DIST_NAMES + tuple(f"d{i}" for i in range(len(_DIST_NAMES), d.size))
+            bad = {n: float(v) for n, v in zip(names[4:], d[4:]) if v != 0}
+            return (f"{cam.name}: Kalibr's radtan model has k1, k2, p1, p2 only; non-zero {bad} (calibrate with 4 "
+                    "or 5 coefficients and k3 fixed at 0 for a Kalibr export)")
+    return None

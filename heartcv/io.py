@@ -502,15 +502,14 @@ def write_colmap(folder, rig: Rig, *, first_camera_id: int = 1, rig_id: int = 1)
 # (no 0.5 shift).
 def kalibr_camchain(rig: Rig, rostopics: dict | None = None) -> dict:
     """The Kalibr camchain of the rig as plain data (cameras in rig order as cam0..camN)."""
+    from .calibration_rig import kalibr_limitation
+
+    why = kalibr_limitation(rig)
+    if why is not None:
+        raise ValueError(why)
     out = {}
     for idx, cam in enumerate(rig.cameras):
         K, d = cam.K, cam.dist
-        if K[0, 1] != 0:
-            raise ValueError(f"{cam.name}: K has skew {K[0, 1]}; Kalibr's pinhole model has none")
-        if d.size > 4 and np.any(d[4:] != 0):
-            bad = {n: float(v) for n, v in zip(DIST_NAMES[4:], d[4:]) if v != 0}
-            raise ValueError(f"{cam.name}: Kalibr's radtan model has k1, k2, p1, p2 only; non-zero {bad} "
-                             f"(calibrate with 4 or 5 coefficients and k3 fixed at 0 for a Kalibr export)")
         coeffs = np.zeros(4)
         coeffs[:min(d.size, 4)] = d[:4]
         e = {"camera_model": "pinhole", "intrinsics": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],

@@ -22,6 +22,10 @@ The pipeline of ``heartcv measure`` (docs/cli.md), frame by frame:
 
 Positions are in the rig frame (camera 0's frame unless the rig file says otherwise), metres. A point's
 reference position is its position in the frame it was born in.
+
+:func:`measure_sequence` is the one frame loop over a whole sequence (``heartcv measure`` and
+``benchmarks/measure.py`` call it): it takes the images from an iterator, so it opens no file. Failures on valid
+input raise :class:`MeasureFailed`; input that cannot be used raises :class:`heartcv.tracker.files.InputError`.
 """
 
 from __future__ import annotations
@@ -32,12 +36,23 @@ import time
 import numpy as np
 
 from .backend import OpenCVBackend
-from .features import detect_corners, region_of_interest, saturation_mask
+from .features import RegionNotFound, detect_corners, region_of_interest, saturation_mask
 from .klt import LKParams, template_patches, track_from_template
 from .matching import match_points
+from .tracker.files import InputError
 from .triangulation import triangulate
 
-__all__ = ["MeasureOptions", "MeasureResult", "Measurer"]
+__all__ = ["MeasureOptions", "MeasureResult", "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
+           "ROI_FRAMES", "reference_frames", "auto_region", "measure_sequence"]
+
+# Frames of the reference camera from which the automatic region of interest is computed (every third of the
+# first 30: the surface moves enough between them to tell it from the static background)
+ROI_FRAMES = range(0, 30, 3)
+
+
+class MeasureFailed(RuntimeError):
+    """The measurement failed on valid input: no textured surface for the region of interest, or no point could
+    be tracked. The command line reports it as a failed stage (exit 1), not as bad input."""
 
 
 @dataclass(frozen=True)
@@ -179,7 +194,7 @@ class Measurer:
         C = len(self.cameras)
         if len(images) != C:
             raise ValueError(f"images: {C} expected, got {len(images)}")
-        for c, (im, cam) in enumerate(zip(images, self.cameras)):
+        for c, (im, cam) in enumerate(zip(images, self.cameras, strict=True)):
             if im is not None and im.shape[:2] != (cam.height, cam.width):
                 raise ValueError(f"images[{c}]: {cam.width}x{cam.height} expected for camera {cam.name}, "
                                  f"got {im.shape[1]}x{im.shape[0]}")
@@ -380,3 +395,159 @@ class Measurer:
             ref[p] = pos[self.birth[p], p]
         return MeasureResult(np.array(self._frames, np.int64), self.ids.copy(), self.birth.copy(), pos, cov, ref,
                              uv, views, rms, sigma, estimated, self.roi, dict(self.timings), list(self.problems))
+
+
+# =====================================================================================================================
+# A whole sequence: the frame loop of ``heartcv measure`` (and of benchmarks/measure.py)
+# =====================================================================================================================
+@dataclass(frozen=True)
+class FrameStats:
+    """Timing and outcome of one instant of :func:`measure_sequence`.
+
+    Attributes
+    ----------
+    frame : int              frame index
+    wait_s : float           time spent waiting for the images (decoding, unless read ahead)
+    total_s : float          time since the end of the previous instant (the first: since the setup ended)
+    tracking_s, triangulation_s, detection_s : float   :attr:`Measurer.timings` spent on this instant
+    seen : int               points seen in this instant
+    detected : bool          whether new points were detected and matched in this instant
+    skipped : bool           fewer than two readable images: all points missing
+    """
+
+    frame: int
+    wait_s: float
+    total_s: float
+    tracking_s: float
+    triangulation_s: float
+    detection_s: float
+    seen: int
+    detected: bool
+    skipped: bool
+
+
+@dataclass(frozen=True)
+class SequenceRun:
+    """The outcome of :func:`measure_sequence`.
+
+    Attributes
+    ----------
+    result : MeasureResult
+    frames : tuple of FrameStats     one per instant, in order
+    problems : tuple of (int, str)   (frame index, message) of every image left out (missing, unreadable, ...)
+    setup_s : float                  region of interest and tracker set-up
+    """
+
+    result: MeasureResult
+    frames: tuple
+    problems: tuple
+    setup_s: float
+
+    @property
+    def skipped(self) -> list:
+        """Frame indices with fewer than two readable images."""
+        return [f.frame for f in self.frames if f.skipped]
+
+    @property
+    def wait_s(self) -> float:
+        """Total time spent waiting for images."""
+        return float(sum(f.wait_s for f in self.frames))
+
+
+def reference_frames(read, count: int, ref: int) -> list:
+    """The readable images of the reference camera at :data:`ROI_FRAMES` (below ``count``).
+
+    Parameters
+    ----------
+    read : callable
+        ``read(k) -> (images, problems)`` of instant ``k`` (e.g. :meth:`heartcv.io.FrameReader.read`).
+    count : int
+        Instants in the sequence.
+    ref : int
+        Reference camera.
+    """
+    images = (read(k)[0][ref] for k in ROI_FRAMES if k < count)
+    return [im for im in images if im is not None]
+
+
+def auto_region(roi_frames, options: MeasureOptions) -> np.ndarray:
+    """The automatic region of interest (:func:`heartcv.features.region_of_interest`) of the reference camera's
+    first frames.
+
+    Raises
+    ------
+    InputError
+        No frame (none of the first frames of the reference camera could be read); field ``images``.
+    MeasureFailed
+        No textured surface found in them.
+    """
+    if not roi_frames:
+        raise InputError(None, f"none of the reference camera's frames {ROI_FRAMES.start}, "
+                               f"{ROI_FRAMES.start + ROI_FRAMES.step}, ... can be read", "images")
+    try:
+        mask, _ = region_of_interest(roi_frames, margin=options.roi_margin_px)
+    except RegionNotFound as exc:  # its documented failure: no (or too little) textured surface in the frames
+        raise MeasureFailed(str(exc)) from None
+    return mask
+
+
+def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions(), *, roi=None, roi_frames=(),
+                     backend=None, clock=time.perf_counter) -> SequenceRun:
+    """Measure a whole sequence: set up a :class:`Measurer` and feed it every instant of ``frames``.
+
+    Parameters
+    ----------
+    frames : iterable of (int, list, list)
+        ``(k, images, problems)`` per instant, in order (e.g. a :class:`heartcv.io.FrameReader`): one 8-bit gray
+        image per camera, None where missing, and the messages naming the images left out. An instant with fewer
+        than two images is recorded with all points missing (:meth:`Measurer.skip`).
+    cameras : sequence of Camera
+    options : MeasureOptions
+    roi : ndarray (H, W) bool, optional
+        Region of interest in the reference camera; default :func:`auto_region` of ``roi_frames``.
+    roi_frames : sequence of ndarray
+        The reference camera's first frames (:func:`reference_frames`), used without ``roi``.
+    backend : image-ops backend (heartcv.backend), default OpenCV.
+    clock : callable
+        Time source of the per-instant timings.
+
+    Raises
+    ------
+    InputError
+        Without ``roi``: none of ``roi_frames`` (field ``images``).
+    MeasureFailed
+        No textured surface for the region of interest, or no point tracked in any instant.
+    """
+    t0 = clock()
+    if roi is None:
+        roi = auto_region(roi_frames, options)
+    measurer = Measurer(cameras, options, roi=roi, backend=backend)
+    prev = clock()
+    setup_s = prev - t0
+    stats, problems = [], []
+    it = iter(frames)
+    while True:
+        t_wait = clock()
+        item = next(it, None)
+        if item is None:
+            break
+        k, images, probs = item
+        t_got = clock()
+        problems.extend((int(k), str(m)) for m in probs)
+        before, spawn = dict(measurer.timings), measurer._last_spawn
+        skipped = sum(im is not None for im in images) < 2
+        if skipped:
+            measurer.skip(k, f"frame {k}: fewer than two readable images")
+            seen = 0
+        else:
+            seen = measurer.step(k, images)
+        now = clock()
+        d = {key: measurer.timings[key] - before[key] for key in before}
+        stats.append(FrameStats(int(k), t_got - t_wait, now - prev, d["tracking"], d["triangulation"],
+                                d["detection"], int(seen), measurer._last_spawn != spawn, skipped))
+        prev = now
+    res = measurer.result()
+    if res.point_ids.size == 0 or not res.seen.any():
+        raise MeasureFailed(f"no surface point could be tracked (region of interest {int(res.roi.sum())} px in "
+                            f"camera {measurer.cameras[options.ref_camera].name})")
+    return SequenceRun(res, tuple(stats), tuple(problems), setup_s)

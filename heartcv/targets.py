@@ -20,9 +20,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from fractions import Fraction
 import functools
+import math
 import numbers
 
 import numpy as np
+
+from .tracker.files import InputError
 
 __all__ = ["TargetSpec", "TARGET_TYPES", "DICTIONARIES", "INCH_M", "exact_px_per_m", "board_texture",
            "render_board", "board_reflectance", "board_extent_m"]
@@ -31,6 +34,8 @@ INCH_M = 0.0254
 MIN_SQUARE_PX = 10       # a printed square must span at least this many pixels
 MIN_MARKER_CELL_PX = 3   # and an ArUco marker cell (one bit) at least this many
 MAX_IMAGE_PX = 30000     # longest side of a printable image (A0 at 600 dpi is 28 000 px)
+MAX_SQUARES = 100        # squares (ChArUco) or inner corners (chessboard) along one side
+MAX_BOARD_M = 1.2        # longest side of the squares area (A0 paper is 1.19 m)
 
 TARGET_TYPES = ("charuco", "chessboard")
 DICTIONARIES = (
@@ -72,41 +77,49 @@ class TargetSpec:
     name: str = "target"
 
     def __post_init__(self):
-        if self.type not in TARGET_TYPES:
-            raise ValueError(f"type: one of {TARGET_TYPES} expected, got {self.type!r}")
+        # errors are InputError (a ValueError) naming the target file's key; heartcv.io.read_target adds the file
+        if not isinstance(self.type, str) or self.type not in TARGET_TYPES:
+            raise InputError(None, f"one of {TARGET_TYPES} expected, got {_show(self.type)}", "type")
+        key = "squares" if self.type == "charuco" else "inner_corners"
         what = "squares" if self.type == "charuco" else "inner corners"
-        try:
-            sq = tuple(self.squares)
-        except TypeError:
-            sq = ()
+        sq = tuple(self.squares) if isinstance(self.squares, (list, tuple)) else ()
         if len(sq) != 2 or not all(_is_int(v) for v in sq):
-            raise ValueError(f"{what}: two integers (cols, rows) expected, got {self.squares!r}")
+            raise InputError(None, f"{what}: two integers (cols, rows) expected, got {_show(self.squares)}", key)
         sq = (int(sq[0]), int(sq[1]))
         # OpenCV: a ChArUco board needs >= 3 squares each way for an inner corner grid; findChessboardCorners(SB)
         # needs more than 2 inner corners each way
         if min(sq) < 3:
-            raise ValueError(f"{what}: at least 3 each way for a {self.type}, got {sq[0]}x{sq[1]}")
+            raise InputError(None, f"{what}: at least 3 each way for a {self.type}, got {sq[0]}x{sq[1]}", key)
+        if max(sq) > MAX_SQUARES:
+            raise InputError(None, f"{what}: at most {MAX_SQUARES} each way, got {sq[0]}x{sq[1]}", key)
         if not (_is_real(self.square_m) and 0 < self.square_m < 1):
-            raise ValueError(f"square size: metres in (0, 1) expected, got {self.square_m!r}")
+            raise InputError(None, f"square size: metres in (0, 1) expected, got {_show(self.square_m)}", "square_m")
         if self.type == "charuco":
             if not (_is_real(self.marker_m) and 0 < self.marker_m < self.square_m):
-                raise ValueError(f"marker size: 0 < marker < square ({self.square_m} m) expected, "
-                                 f"got {self.marker_m!r}")
-            if self.dictionary not in DICTIONARIES:
-                raise ValueError(f"dictionary: one of {DICTIONARIES} expected, got {self.dictionary!r}")
+                raise InputError(None, f"marker size: 0 < marker < square ({self.square_m} m) expected, "
+                                       f"got {_show(self.marker_m)}", "marker_m")
+            if not isinstance(self.dictionary, str) or self.dictionary not in DICTIONARIES:
+                raise InputError(None, f"one of {DICTIONARIES} expected, got {_show(self.dictionary)}", "dictionary")
             n_markers = (sq[0] * sq[1]) // 2
             size = int(self.dictionary.split("_")[-1]) if self.dictionary != "DICT_ARUCO_ORIGINAL" else 1024
             if n_markers > size:
-                raise ValueError(f"dictionary: {self.dictionary} has {size} markers, the board needs {n_markers}")
+                raise InputError(None, f"{self.dictionary} has {size} markers, the board needs {n_markers}",
+                                 "dictionary")
         else:
             if self.marker_m is not None or self.dictionary is not None:
-                raise ValueError("marker size and dictionary apply to ChArUco targets only")
-            if self.legacy:
-                raise ValueError("legacy pattern applies to ChArUco targets only")
+                raise InputError(None, "marker size and dictionary apply to ChArUco targets only",
+                                 "marker_m" if self.marker_m is not None else "dictionary")
+            if isinstance(self.legacy, (bool, np.bool_)) and self.legacy:
+                raise InputError(None, "legacy pattern applies to ChArUco targets only", "legacy_pattern")
         if not isinstance(self.legacy, (bool, np.bool_)):
-            raise ValueError(f"legacy pattern: true or false expected, got {self.legacy!r}")
+            raise InputError(None, f"legacy pattern: true or false expected, got {_show(self.legacy)}",
+                             "legacy_pattern")
         if not isinstance(self.name, str) or not self.name.strip():
-            raise ValueError(f"name: a non-empty string expected, got {self.name!r}")
+            raise InputError(None, f"a non-empty string expected, got {_show(self.name)}", "name")
+        n_side = max(sq) if self.type == "charuco" else max(sq) + 1
+        if n_side * float(self.square_m) > MAX_BOARD_M:
+            raise InputError(None, f"square size: the squares area would be {n_side * float(self.square_m):.3g} m "
+                                   f"long; at most {MAX_BOARD_M} m allowed", "square_m")
         object.__setattr__(self, "squares", sq)
         object.__setattr__(self, "square_m", float(self.square_m))
         object.__setattr__(self, "legacy", bool(self.legacy))
@@ -175,31 +188,47 @@ class TargetSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TargetSpec":
-        """Inverse of :meth:`to_dict`; ValueError naming the bad field."""
+        """Inverse of :meth:`to_dict`; :class:`~heartcv.tracker.files.InputError` (a ValueError) naming the bad
+        field."""
         if not isinstance(d, dict):
-            raise ValueError("target: a mapping expected")
-        if d.get("format", "heartcv.target") != "heartcv.target":
-            raise ValueError(f"format: 'heartcv.target' expected, got {d.get('format')!r}")
-        if d.get("format_version", 1) != 1:
-            raise ValueError(f"format_version: 1 supported, got {d.get('format_version')!r}")
+            raise InputError(None, f"target: a mapping expected, got {type(d).__name__}")
+        fmt = d.get("format", "heartcv.target")
+        if fmt != "heartcv.target":
+            raise InputError(None, f"'heartcv.target' expected, got {_show(fmt)}", "format")
+        ver = d.get("format_version", 1)
+        if isinstance(ver, bool) or ver != 1:
+            raise InputError(None, f"1 supported, got {_show(ver)}", "format_version")
         typ = d.get("type")
+        if not isinstance(typ, str) or typ not in TARGET_TYPES:
+            raise InputError(None, f"one of {TARGET_TYPES} expected, got {_show(typ)}", "type")
         key = "squares" if typ == "charuco" else "inner_corners"
-        if typ not in TARGET_TYPES:
-            raise ValueError(f"type: one of {TARGET_TYPES} expected, got {typ!r}")
         # informative keys written by heartcv.io.write_target: accepted, not part of the spec
         known = {"format", "format_version", "name", "type", key, "square_m", "marker_m", "dictionary",
                  "legacy_pattern", "image", "dpi", "heartcv_version", "board_size_m", "producer", "description"}
-        unknown = sorted(set(d) - known)
+        unknown = sorted(set(d) - known, key=str)
         if unknown:
-            raise ValueError(f"{unknown[0]}: unknown field (known: {sorted(known)})")
+            raise InputError(None, f"unknown field (known: {sorted(known)})", str(unknown[0]))
         for k in (key, "square_m"):
             if k not in d:
-                raise ValueError(f"{k}: missing")
+                raise InputError(None, "missing (required)", k)
         sq = d[key]
         if not isinstance(sq, (list, tuple)):
-            raise ValueError(f"{key}: a list [cols, rows] expected, got {sq!r}")
+            raise InputError(None, f"a list [cols, rows] expected, got {_show(sq)}", key)
         return cls(typ, tuple(sq), d["square_m"], d.get("marker_m"), d.get("dictionary"),
                    d.get("legacy_pattern", False), d.get("name", "target"))
+
+
+def _show(v, n: int = 80) -> str:
+    """``repr`` of a value for a message, cut to ``n`` characters (a huge integer by its size)."""
+    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 64:
+        return f"an integer of about {'-' if v < 0 else ''}10^{int(v.bit_length() * 0.30103)}"
+    if isinstance(v, (list, tuple)) and len(v) > 16:
+        return f"a list of {len(v)} entries"
+    try:
+        r = repr(v)
+    except ValueError:  # an integer too long to print, nested in a list
+        r = f"<{type(v).__name__}>"
+    return r if len(r) <= n else r[: n - 4] + " ..."
 
 
 def _is_int(v) -> bool:
@@ -208,7 +237,12 @@ def _is_int(v) -> bool:
 
 
 def _is_real(v) -> bool:
-    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and bool(np.isfinite(v))
+    if not isinstance(v, numbers.Real) or isinstance(v, (bool, np.bool_)):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:  # an integer beyond the float range
+        return False
 
 
 # -- pixel grids ------------------------------------------------------------------------------------------------
@@ -241,20 +275,22 @@ def _square_px(spec: TargetSpec, px_per_m: float) -> int:
 
 
 def _check_printable(spec: TargetSpec, square_px: int, px_per_m: float):
+    """InputError (no file, no field: the values are the caller's options) for squares or marker cells too small
+    to print at this density, or an image too large."""
     dpi = px_per_m * INCH_M
     if square_px < MIN_SQUARE_PX:
-        raise ValueError(f"squares too small: {spec.square_m * 1e3:g} mm is {square_px} px at {dpi:.4g} dpi "
-                         f"(at least {MIN_SQUARE_PX} px needed); raise the DPI or the square size")
+        raise InputError(None, f"squares too small: {spec.square_m * 1e3:g} mm is {square_px} px at {dpi:.4g} dpi "
+                               f"(at least {MIN_SQUARE_PX} px needed); raise the DPI or the square size")
     if spec.type == "charuco":
         cell_px = spec.marker_m / (_marker_bits(spec) + 2) * px_per_m
         if cell_px < MIN_MARKER_CELL_PX:
-            raise ValueError(f"markers too small: a {spec.marker_m * 1e3:g} mm {spec.dictionary} marker has cells of "
-                             f"{cell_px:.2g} px at {dpi:.4g} dpi (at least {MIN_MARKER_CELL_PX} px needed); raise the "
-                             f"DPI or the marker size")
+            raise InputError(None, f"markers too small: a {spec.marker_m * 1e3:g} mm {spec.dictionary} marker has "
+                                   f"cells of {cell_px:.2g} px at {dpi:.4g} dpi (at least {MIN_MARKER_CELL_PX} px "
+                                   "needed); raise the DPI or the marker size")
     cols, rows = spec.squares_count
     if max(cols, rows) * square_px > MAX_IMAGE_PX:
-        raise ValueError(f"image too large: {cols * square_px} x {rows * square_px} px at {dpi:.4g} dpi "
-                         f"(at most {MAX_IMAGE_PX} px a side)")
+        raise InputError(None, f"image too large: {cols * square_px} x {rows * square_px} px at {dpi:.4g} dpi "
+                               f"(at most {MAX_IMAGE_PX} px a side)")
 
 
 def _marker_bits(spec: TargetSpec) -> int:
@@ -304,6 +340,12 @@ def render_board(spec: TargetSpec, dpi: float = 300, margin_m: float = 0.01) -> 
         px_per_m``.
     px_per_m : float
         Pixels per metre (a whole number for square sizes that are simple fractions of a metre).
+
+    Raises
+    ------
+    InputError
+        Squares under ``MIN_SQUARE_PX`` or marker cells under ``MIN_MARKER_CELL_PX`` pixels at this density, or an
+        image over ``MAX_IMAGE_PX`` pixels a side (no file, no field: the caller's values).
     """
     if not (_is_real(dpi) and dpi > 0):
         raise ValueError(f"dpi: a positive number expected, got {dpi!r}")

@@ -12,10 +12,12 @@ import math
 
 import numpy as np
 
+from .files import InputError
 from .geometry import PatchGeometry
 from .params import DEFAULT_BOUNDS, NAMES, ParameterSpace
 
-__all__ = ["ConfigError", "ModelConfig", "model_config_from_dict", "FORMAT", "FORMAT_VERSION"]
+__all__ = ["ConfigError", "ModelConfig", "model_config_from_dict", "FORMAT", "FORMAT_VERSION", "SIZE_LIMITS",
+           "MAX_FULL_DOF"]
 
 FORMAT = "heartcv.model"
 FORMAT_VERSION = 1
@@ -26,13 +28,27 @@ DEFAULT_PRIOR_STD = {"rho": 0.3, "alpha1": 1.0, "alpha2": 1.0, "E": 0.5, "nu": 0
 GE_DEFAULTS = {"nodes": 5, "variant": "A", "sqrt": "cholesky", "truncation": "sequential"}
 UKF_DEFAULTS = {"alpha": 0.1, "beta": 2.0, "kappa": 0.0}
 
+MAX_FULL_DOF = 3000
+"""Largest free-DOF count for which the full (unreduced) model is allowed (dense matrices of 72 MB each)."""
+SIZE_LIMITS = {
+    "grid_axis": 1000,        # nodes along one axis of geometry.grid
+    "mesh_nodes": 10_000,     # nodes of the mesh (n_s n_t n_d): builds in about 15 s and < 1 GB with a reduction
+    "observed_points": 1000,  # observed points (observation): 3000 measurement rows
+    "static_nu": 10,          # entries of reduction.static_nu
+    "rr_intervals": 100_000,  # entries of inputs.pressure.rr_intervals
+}
+"""Size caps of the model file (docs/formats.md §2.1): nothing a model file asks for allocates gigabytes."""
+MAX_PRIOR_STD_PHI = 10.0
+"""Largest prior or random-walk standard deviation in phi units (a factor e^10 on rho, E, alpha + eps)."""
 
-class ConfigError(ValueError):
-    """A model file field is missing, unknown or out of range; ``field`` names it."""
 
-    def __init__(self, field_name: str, message: str):
-        super().__init__(f"{field_name}: {message}")
-        self.field = field_name
+class ConfigError(InputError):
+    """A model file field is missing, unknown or out of range; ``field`` names it (dotted path, None for the file as
+    a whole). An :class:`~heartcv.tracker.files.InputError` without a file: ``tracker.io.read_model`` attaches the
+    file with :meth:`~heartcv.tracker.files.InputError.in_file`."""
+
+    def __init__(self, field_name: str | None, message: str):
+        super().__init__(None, message, field_name)
 
 
 @dataclass(frozen=True)
@@ -142,6 +158,65 @@ class ModelConfig:
 
 
 # ---------------------------------------------------------------------------------------------
+def _show(v, n: int = 80) -> str:
+    """``repr`` of a value for a message, cut to ``n`` characters (a huge integer by its size)."""
+    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 64:
+        return f"an integer of about {'-' if v < 0 else ''}10^{int(v.bit_length() * math.log10(2))}"
+    if isinstance(v, (list, tuple)) and len(v) > 8:
+        return f"a list of {len(v)} entries"
+    try:
+        r = repr(v)
+    except ValueError:  # an integer too long to print, nested in a list
+        r = f"<{type(v).__name__}>"
+    return r if len(r) <= n else r[: n - 4] + " ..."
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _range_text(lo, hi, lo_open, hi_open) -> str:
+    return f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+
+
+def _number(v, name: str, lo=-math.inf, hi=math.inf, lo_open=False, hi_open=False, allow_inf=False) -> float:
+    """A finite float (``.inf`` too with ``allow_inf``) in the given range, or ConfigError naming ``name``."""
+    if isinstance(v, str):  # a number written as text; PyYAML (YAML 1.1) reads 1.0e8 as a string
+        try:
+            v = float(v.strip().replace(".inf", "inf").replace(".Inf", "inf").replace(".INF", "inf"))
+        except ValueError:
+            raise ConfigError(name, f"a number expected, got {_show(v)}") from None
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(name, f"a number expected, got {_show(v)}")
+    try:
+        v = float(v)
+    except OverflowError:  # an integer beyond the float range
+        raise ConfigError(name, f"a finite number expected, got {_show(v)}") from None
+    if math.isnan(v) or (math.isinf(v) and not allow_inf):
+        raise ConfigError(name, f"a finite number expected, got {v!r}")
+    if allow_inf and v == math.inf:  # .inf means "unbounded" or "flat": not range-checked
+        return v
+    if (v <= lo if lo_open else v < lo) or (v >= hi if hi_open else v > hi):
+        raise ConfigError(name, f"must lie in {_range_text(lo, hi, lo_open, hi_open)}, got {v!r}")
+    return v
+
+
+def _integer(v, name: str, lo: int, hi: int, what: str = "an integer") -> int:
+    if not _is_int(v):
+        raise ConfigError(name, f"{what} expected, got {_show(v)}")
+    if not lo <= v <= hi:
+        raise ConfigError(name, f"must lie in [{lo}, {hi}], got {_show(v)}")
+    return int(v)
+
+
+def _number_list(v, name: str, lo, hi, *, lo_open=False, hi_open=False, n=None, max_len=None,
+                 what="a list of numbers") -> tuple:
+    """A list of numbers in a range: ConfigError naming the list (wrong type or length) or the entry."""
+    if not isinstance(v, (list, tuple)) or (n is not None and len(v) != n) or (max_len is not None and len(v) > max_len):
+        raise ConfigError(name, f"{what} expected, got {_show(v)}")
+    return tuple(_number(x, f"{name}[{i}]", lo, hi, lo_open, hi_open) for i, x in enumerate(v))
+
+
 class _Section:
     """Reads one mapping, tracking its path for error messages and rejecting unknown keys."""
 
@@ -149,13 +224,14 @@ class _Section:
         if data is None:
             data = {}
         if not isinstance(data, dict):
-            raise ConfigError(path or "<root>", f"a mapping expected, got {type(data).__name__}")
+            raise ConfigError(path or None, f"a mapping expected, got {type(data).__name__}"
+                              + ("" if path else " (a model file is a YAML mapping, docs/formats.md §2)"))
         self.data = dict(data)
         self.path = path
         self.seen: set = set()
 
     def _name(self, key):
-        return f"{self.path}.{key}" if self.path else key
+        return f"{self.path}.{key}" if self.path else str(key)
 
     def has(self, key):
         return key in self.data
@@ -174,28 +250,13 @@ class _Section:
         v = self.data[key]
         if v is None and allow_none:
             return None
-        if isinstance(v, str):  # PyYAML (YAML 1.1) reads 1.0e8 as a string
-            try:
-                v = float(v.strip().replace(".inf", "inf"))
-            except ValueError:
-                raise ConfigError(self._name(key), f"a number expected, got {v!r}") from None
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ConfigError(self._name(key), f"a number expected, got {v!r}")
-        v = float(v)
-        if math.isnan(v) or (math.isinf(v) and not allow_inf):
-            raise ConfigError(self._name(key), f"a finite number expected, got {v!r}")
-        bad = (v <= lo if lo_open else v < lo) or (v >= hi if hi_open else v > hi)
-        if bad:
-            lb = "(" if lo_open else "["
-            rb = ")" if hi_open else "]"
-            raise ConfigError(self._name(key), f"must lie in {lb}{lo}, {hi}{rb}, got {v}")
-        return v
+        return _number(v, self._name(key), lo, hi, lo_open, hi_open, allow_inf)
 
     def choice(self, key, default, options):
         self.seen.add(key)
         v = self.data.get(key, default)
-        if v not in options:
-            raise ConfigError(self._name(key), f"one of {list(options)} expected, got {v!r}")
+        if not isinstance(v, str) or v not in options:
+            raise ConfigError(self._name(key), f"one of {list(options)} expected, got {_show(v)}")
         return v
 
     def section(self, key):
@@ -203,57 +264,67 @@ class _Section:
         return _Section(self.data.get(key), self._name(key))
 
     def done(self):
-        unknown = sorted(set(self.data) - self.seen)
+        unknown = sorted(set(self.data) - self.seen, key=str)
         if unknown:
-            raise ConfigError(self._name(unknown[0]), f"unknown key (known: {sorted(self.seen)})")
+            raise ConfigError(self._name(unknown[0]), f"unknown key (known: {sorted(self.seen, key=str)})")
 
 
 def _geometry(sec: _Section) -> PatchGeometry:
     g = PatchGeometry()
-    length = sec.number("length", g.length, lo=0, lo_open=True)
-    width = sec.number("width", g.width, lo=0, lo_open=True)
-    thick = sec.number("thickness", g.thickness, lo=0, lo_open=True)
-    r1 = sec.number("radius_long", g.radius_long, lo=0, lo_open=True, allow_none=True, allow_inf=True)
-    r2 = sec.number("radius_circ", g.radius_circ, lo=0, lo_open=True, allow_none=True, allow_inf=True)
+    length = sec.number("length", g.length, lo=1e-4, hi=1.0)
+    width = sec.number("width", g.width, lo=1e-4, hi=1.0)
+    thick = sec.number("thickness", g.thickness, lo=1e-4, hi=1.0)
+    r1 = sec.number("radius_long", g.radius_long, lo=0, lo_open=True, hi=100.0, allow_none=True, allow_inf=True)
+    r2 = sec.number("radius_circ", g.radius_circ, lo=0, lo_open=True, hi=100.0, allow_none=True, allow_inf=True)
     r1 = math.inf if r1 is None else r1
     r2 = math.inf if r2 is None else r2
     grid = sec.raw("grid", list(g.grid))
-    if (not isinstance(grid, (list, tuple)) or len(grid) != 3
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2 for v in grid)):
-        raise ConfigError(sec._name("grid"), f"three integer node counts >= 2 expected, got {grid!r}")
+    if not isinstance(grid, (list, tuple)) or len(grid) != 3:
+        raise ConfigError(sec._name("grid"), f"three integer node counts [n_s, n_t, n_d] expected, got {_show(grid)}")
+    cap = SIZE_LIMITS["grid_axis"]
+    # n_s, n_t >= 3: the rim (first and last node along s and t) is clamped, so the mesh needs inner nodes
+    grid = tuple(_integer(v, f"{sec._name('grid')}[{i}]", lo, cap, "an integer node count")
+                 for i, (v, lo) in enumerate(zip(grid, (3, 3, 2))))
+    if math.prod(grid) > SIZE_LIMITS["mesh_nodes"]:
+        raise ConfigError(sec._name("grid"), f"{grid[0]} x {grid[1]} x {grid[2]} = {math.prod(grid)} nodes; at most "
+                                             f"{SIZE_LIMITS['mesh_nodes']} allowed")
     sec.done()
     try:
-        return PatchGeometry(length, width, thick, r1, r2, tuple(grid))
+        return PatchGeometry(length, width, thick, r1, r2, grid)
     except ValueError as exc:  # PatchGeometry's messages already name the field
         field_name, _, msg = str(exc).partition(": ")
         raise ConfigError(field_name if msg else sec.path, msg or str(exc)) from None
 
 
+THETA_RANGES = {  # name: (default, lo, hi, lo_open, hi_open); SI units
+    "rho": (1050.0, 0.0, 1e6, True, False),
+    "alpha1": (2.39, 0.0, 1e4, False, False),
+    "alpha2": (0.003, 0.0, 100.0, False, False),
+    "E": (150e3, 0.0, 1e12, True, False),
+    "nu": (0.45, 0.0, 0.5, True, True),
+}
+"""Valid values of each parameter in the model file (docs/formats.md §2.4)."""
+
+
 def _theta(sec: _Section) -> np.ndarray:
-    th = np.array([
-        sec.number("rho", 1050.0, lo=0, lo_open=True),
-        sec.number("alpha1", 2.39, lo=0),
-        sec.number("alpha2", 0.003, lo=0),
-        sec.number("E", 150e3, lo=0, lo_open=True),
-        sec.number("nu", 0.45, lo=0, hi=0.5, lo_open=True, hi_open=True),
-    ])
+    th = np.array([sec.number(n, d, lo=lo, hi=hi, lo_open=lo_o, hi_open=hi_o)
+                   for n, (d, lo, hi, lo_o, hi_o) in THETA_RANGES.items()])
     sec.done()
     return th
 
 
-def _per_parameter(sec: _Section, allowed, *, pair=False):
+def _per_parameter(sec: _Section, allowed, *, pair=False, hi=math.inf):
     out = {}
     for key in list(sec.data):
-        if key not in allowed:
+        if not isinstance(key, str) or key not in allowed:
             raise ConfigError(sec._name(key), f"unknown parameter (known: {list(allowed)})")
         if pair:
             v = sec.raw(key)
             if not isinstance(v, (list, tuple)) or len(v) != 2:
-                raise ConfigError(sec._name(key), f"[lower, upper] expected, got {v!r}")
-            sub = _Section({"lower": v[0], "upper": v[1]}, sec._name(key))
-            out[key] = (sub.number("lower", allow_inf=True), sub.number("upper", allow_inf=True))
+                raise ConfigError(sec._name(key), f"[lower, upper] expected, got {_show(v)}")
+            out[key] = tuple(_number(x, f"{sec._name(key)}[{i}]", allow_inf=True) for i, x in enumerate(v))
         else:
-            out[key] = sec.number(key, lo=0)
+            out[key] = sec.number(key, lo=0, hi=hi)
     sec.done()
     return out
 
@@ -262,9 +333,10 @@ def _estimation(sec: _Section) -> EstimationConfig:
     est = sec.raw("estimate", ["E", "nu"])
     if isinstance(est, str):
         est = [est]
-    if not isinstance(est, (list, tuple)) or any(e not in NAMES for e in est):
-        raise ConfigError(sec._name("estimate"), f"a list of parameter names from {list(NAMES)} expected, got {est!r}")
-    prior = _per_parameter(sec.section("prior_std"), NAMES)
+    if not isinstance(est, (list, tuple)) or any(not isinstance(e, str) or e not in NAMES for e in est):
+        raise ConfigError(sec._name("estimate"),
+                          f"a list of parameter names from {list(NAMES)} expected, got {_show(est)}")
+    prior = _per_parameter(sec.section("prior_std"), NAMES, hi=MAX_PRIOR_STD_PHI)
     prior_si = _per_parameter(sec.section("prior_std_si"), NAMES)
     both = sorted(set(prior) & set(prior_si))
     if both:
@@ -273,11 +345,11 @@ def _estimation(sec: _Section) -> EstimationConfig:
         for k, v in d.items():
             if v <= 0 and k in est:
                 raise ConfigError(sec._name(f"{name}.{k}"), f"an estimated parameter needs a prior std > 0, got {v}")
-    walk = _per_parameter(sec.section("random_walk_std"), NAMES)
+    walk = _per_parameter(sec.section("random_walk_std"), NAMES, hi=MAX_PRIOR_STD_PHI)
     bounds = _per_parameter(sec.section("bounds"), NAMES, pair=True)
     eps = sec.section("epsilon")
-    e1 = eps.number("alpha1", None, lo=0, lo_open=True, allow_none=True)
-    e2 = eps.number("alpha2", None, lo=0, lo_open=True, allow_none=True)
+    e1 = eps.number("alpha1", None, lo=0, lo_open=True, hi=THETA_RANGES["alpha1"][2], allow_none=True)
+    e2 = eps.number("alpha2", None, lo=0, lo_open=True, hi=THETA_RANGES["alpha2"][2], allow_none=True)
     eps.done()
     g = sec.section("ge")
     nodes = g.number("nodes", GE_DEFAULTS["nodes"], lo=3, hi=51)
@@ -292,9 +364,9 @@ def _estimation(sec: _Section) -> EstimationConfig:
     g.done()
     u = sec.section("ukf")
     ukf = {
-        "alpha": u.number("alpha", UKF_DEFAULTS["alpha"], lo=0, lo_open=True, hi=1),
-        "beta": u.number("beta", UKF_DEFAULTS["beta"], lo=0),
-        "kappa": u.number("kappa", UKF_DEFAULTS["kappa"]),
+        "alpha": u.number("alpha", UKF_DEFAULTS["alpha"], lo=1e-4, hi=1),
+        "beta": u.number("beta", UKF_DEFAULTS["beta"], lo=0, hi=1e3),
+        "kappa": u.number("kappa", UKF_DEFAULTS["kappa"], lo=-1e3, hi=1e3),
     }
     u.done()
     sec.done()
@@ -308,16 +380,16 @@ def _inputs(sec: _Section) -> InputsConfig:
     hr = p.number("heart_rate_bpm", d.heart_rate_bpm, lo=20, hi=250)
     rr = p.raw("rr_intervals", None)
     if rr is not None:
-        if not isinstance(rr, (list, tuple)) or not rr or any(
-            isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.24 <= v <= 3.0) for v in rr
-        ):
-            raise ConfigError(p._name("rr_intervals"), f"a list of beat lengths in [0.24, 3] s expected, got {rr!r}")
-        rr = tuple(float(v) for v in rr)
-    scale = p.number("scale", 1.0, lo=0)
+        cap = SIZE_LIMITS["rr_intervals"]
+        rr = _number_list(rr, p._name("rr_intervals"), 0.24, 3.0, max_len=cap,
+                          what=f"a list of 1 to {cap} beat lengths in [0.24, 3] s")
+        if not rr:
+            raise ConfigError(p._name("rr_intervals"), "a list of 1 or more beat lengths expected, got []")
+    scale = p.number("scale", 1.0, lo=0, hi=1e3)
     la_mean = p.number("la_mean_mmhg", 8.0, lo=0, hi=60)
     p.done()
     act = sec.section("active_tension")
-    t_max = act.number("t_max", None, lo=0, allow_none=True) if act.data else None
+    t_max = act.number("t_max", None, lo=0, hi=1e7, allow_none=True) if act.data else None
     act.done()
     resp = None
     if sec.raw("respiration") is not None:
@@ -326,14 +398,13 @@ def _inputs(sec: _Section) -> InputsConfig:
             "amplitude": r.number("amplitude", 0.004, lo=0, hi=0.05),
             "frequency_hz": r.number("frequency_hz", 0.25, lo=0.01, hi=2.0),
             "n": int(r.number("n", 2, lo=1, hi=10)),
-            "phase": r.number("phase", 0.0),
+            "phase": r.number("phase", 0.0, lo=-1e6, hi=1e6),
         }
-        direction = r.raw("direction", [1.0, 0.3, 0.0])
-        if (not isinstance(direction, (list, tuple)) or len(direction) != 3
-                or not np.isfinite(np.asarray(direction, float)).all()
-                or np.linalg.norm(np.asarray(direction, float)) == 0):
-            raise ConfigError(r._name("direction"), f"a non-zero 3-vector expected, got {direction!r}")
-        resp["direction"] = tuple(float(v) for v in direction)
+        direction = _number_list(r.raw("direction", [1.0, 0.3, 0.0]), r._name("direction"), -1e3, 1e3, n=3,
+                                 what="a non-zero 3-vector (numbers in [-1000, 1000])")
+        if not any(direction):
+            raise ConfigError(r._name("direction"), f"a non-zero 3-vector expected, got {list(direction)}")
+        resp["direction"] = direction
         r.done()
     rate = sec.number("sample_rate_hz", 250.0, lo=1, hi=1e5)
     sec.done()
@@ -342,37 +413,47 @@ def _inputs(sec: _Section) -> InputsConfig:
 
 def _noise(sec: _Section) -> NoiseConfig:
     d = NoiseConfig()
-    meas = sec.number("measurement_std", d.measurement_std, lo=0, lo_open=True)
+    meas = sec.number("measurement_std", d.measurement_std, lo=1e-9, hi=1.0)
     pr = sec.section("process")
     kind = pr.choice("kind", "diagonal", ("diagonal", "acceleration"))
-    pos = pr.number("position_std", d.position_std, lo=0)
-    vel = pr.number("velocity_std", d.velocity_std, lo=0)
-    acc = pr.number("accel_psd", d.accel_psd, lo=0)
+    pos = pr.number("position_std", d.position_std, lo=0, hi=1.0)
+    vel = pr.number("velocity_std", d.velocity_std, lo=0, hi=100.0)
+    acc = pr.number("accel_psd", d.accel_psd, lo=0, hi=1e6)
     pr.done()
     ini = sec.section("initial")
-    ipos = ini.number("position_std", d.initial_position_std, lo=0, lo_open=True)
-    ivel = ini.number("velocity_std", d.initial_velocity_std, lo=0, lo_open=True)
+    ipos = ini.number("position_std", d.initial_position_std, lo=1e-12, hi=1.0)
+    ivel = ini.number("velocity_std", d.initial_velocity_std, lo=1e-12, hi=100.0)
     ini.done()
     sec.done()
     return NoiseConfig(meas, kind, pos, vel, acc, ipos, ivel)
 
 
+def _name_value(v) -> str:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) < 1e15:  # NaN fails too
+        return str(v)  # YAML reads `name: 2024` as a number
+    raise ConfigError("name", f"a string expected, got {_show(v)}")
+
+
 def model_config_from_dict(data) -> ModelConfig:
     """Validate a parsed model file and return a :class:`ModelConfig`.
+
+    ``data`` is the parsed YAML document: a mapping, or None for an empty file (the default model).
 
     Raises
     ------
     ConfigError
-        Naming the first offending field.
+        Naming the first offending field (an :class:`~heartcv.tracker.files.InputError` without a file).
     """
     root = _Section(data, "")
     fmt = root.raw("format", FORMAT)
     if fmt != FORMAT:
-        raise ConfigError("format", f"{FORMAT!r} expected, got {fmt!r}")
+        raise ConfigError("format", f"{FORMAT!r} expected, got {_show(fmt)}")
     ver = root.raw("format_version", FORMAT_VERSION)
-    if ver != FORMAT_VERSION:
-        raise ConfigError("format_version", f"{FORMAT_VERSION} supported, got {ver!r}")
-    name = str(root.raw("name", "model"))
+    if isinstance(ver, bool) or ver != FORMAT_VERSION:
+        raise ConfigError("format_version", f"{FORMAT_VERSION} supported, got {_show(ver)}")
+    name = _name_value(root.raw("name", "model"))
     root.raw("description")
     geometry = _geometry(root.section("geometry"))
     theta = _theta(root.section("parameters"))
@@ -387,30 +468,46 @@ def model_config_from_dict(data) -> ModelConfig:
     if root.raw("reduction") is not None:
         red = root.section("reduction")
         modes = red.number("modes", 10, lo=1, hi=500)
-        static = red.raw("static_nu", [0.3, 0.45, 0.49])
-        if not isinstance(static, (list, tuple)) or any(
-            isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 0.5 for v in static
-        ):
-            raise ConfigError("reduction.static_nu", f"a list of Poisson ratios in (0, 0.5) expected, got {static!r}")
+        cap = SIZE_LIMITS["static_nu"]
+        static = _number_list(red.raw("static_nu", [0.3, 0.45, 0.49]), "reduction.static_nu", 0, 0.5, lo_open=True,
+                              hi_open=True, max_len=cap, what=f"a list of at most {cap} Poisson ratios in (0, 0.5)")
         red.done()
-        reduction = {"modes": int(modes), "static_nu": tuple(float(v) for v in static)}
+        reduction = {"modes": int(modes), "static_nu": static}
     obs = root.section("observation")
     points = obs.raw("points", "epicardial_nodes")
-    if points == "epicardial_nodes":
+    ns, nt, nd = geometry.grid
+    if isinstance(points, str) and points == "epicardial_nodes":
         observation = {"points": "epicardial_nodes"}
+        n_points = (ns - 2) * (nt - 2)
     elif isinstance(points, dict) and set(points) == {"grid"}:
         grid = points["grid"]
-        if not isinstance(grid, (list, tuple)) or len(grid) != 2 or not all(
-            isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in grid
-        ):
-            raise ConfigError("observation.points.grid", f"[n_s, n_t] positive integers expected, got {grid!r}")
+        if not isinstance(grid, (list, tuple)) or len(grid) != 2:
+            raise ConfigError("observation.points.grid", f"[n_s, n_t] positive integers expected, got {_show(grid)}")
+        cap = SIZE_LIMITS["observed_points"]
+        grid = tuple(_integer(v, f"observation.points.grid[{i}]", 1, cap, "a positive integer")
+                     for i, v in enumerate(grid))
         margin = obs.number("margin", 0.1, lo=0, hi=0.49)
-        observation = {"points": "grid", "grid": tuple(grid), "margin": margin}
+        observation = {"points": "grid", "grid": grid, "margin": margin}
+        n_points = grid[0] * grid[1]
     else:
-        raise ConfigError("observation.points", f"'epicardial_nodes' or {{grid: [n_s, n_t]}} expected, got {points!r}")
+        raise ConfigError("observation.points",
+                          f"'epicardial_nodes' or {{grid: [n_s, n_t]}} expected, got {_show(points)}")
     obs.done()
     root.done()
+    free_dofs = 3 * (ns - 2) * (nt - 2) * nd
+    if reduction is None and free_dofs > MAX_FULL_DOF:
+        raise ConfigError("geometry.grid", f"the model has {free_dofs} free DOFs; the full model allows at most "
+                                           f"{MAX_FULL_DOF}. Add a 'reduction' section (a fixed Ritz basis, "
+                                           "docs/model.md §5) or use a coarser grid")
+    if n_points > SIZE_LIMITS["observed_points"]:
+        raise ConfigError("observation.points", f"{n_points} observed points; at most "
+                                                f"{SIZE_LIMITS['observed_points']} allowed (use {{grid: [n_s, n_t]}})")
     cfg = ModelConfig(name, geometry, theta, estimation, inputs, noise, method, rate, reduction, observation,
-                      raw=dict(data))
-    cfg.parameter_space()  # validate bounds and estimated set now
+                      raw=dict(data or {}))
+    space = cfg.parameter_space()  # validate bounds and estimated set now
+    for n, sd in zip(space.estimated, cfg.prior_std_phi()):
+        if not 1e-8 <= sd <= MAX_PRIOR_STD_PHI:
+            key = "prior_std" if n in estimation.prior_std else "prior_std_si"
+            raise ConfigError(f"estimation.{key}.{n}", f"gives a prior std of {sd:.3g} in phi units at the model's "
+                                                       f"parameters; [1e-08, {MAX_PRIOR_STD_PHI:g}] allowed")
     return cfg

@@ -32,6 +32,7 @@ import logging
 import numpy as np
 import scipy.linalg as sla
 
+from .files import InputError
 from .measurements import MeasurementSet
 from .model import PatchModel
 from .params import NAMES, ParameterSpace
@@ -77,12 +78,11 @@ class FitProblem:
 
     def __init__(self, model: PatchModel, meas: MeasurementSet, frames: int | None = None,
                  points: ObservedPoints | None = None):
-        K = meas.n_frames if frames is None else int(frames)
+        if frames is not None and int(frames) < 2:
+            raise ValueError(f"frames: at least 2 frames are needed for a fit, got {frames}")
+        K = meas.n_frames if frames is None else min(int(frames), meas.n_frames)
         if K < 2:
-            raise ValueError(f"frames: at least 2 frames are needed for a fit, got {K}")
-        K = min(K, meas.n_frames)
-        if K < 2:
-            raise ValueError("measurements: a fit needs at least 2 frames, the file has 1")
+            raise InputError(None, f"a fit needs at least 2 frames, the file has {meas.n_frames}", "times")
         pts = points or locate_points(model, meas)
         self.model = model
         self.dt = frame_interval(model, meas)
@@ -92,7 +92,7 @@ class FitProblem:
         seen = np.isfinite(y).all(axis=2)
         use = seen.sum(axis=0) >= 2
         if not use.any():
-            raise ValueError(f"measurements: no point on the patch is seen in two of the first {K} frames")
+            raise InputError(None, f"no point on the patch is seen in two of the first {K} frames", "positions")
         self.keep = pts.keep[use]
         self.dropped = np.setdiff1d(np.arange(meas.n_points), self.keep)
         P = int(use.sum())
@@ -271,6 +271,14 @@ class FitResult:
         return tuple(n for n in NAMES if n not in self.estimated)
 
     @property
+    def poorly_determined(self) -> tuple:
+        """Estimated parameters whose standard deviation in phi exceeds 1: the data do not pin them down to a
+        factor e (docs/spec/model.md §4.3). Empty without a covariance."""
+        if self.cov_phi is None:
+            return ()
+        return tuple(n for n, v in zip(self.estimated, np.diag(self.cov_phi), strict=True) if v > 1.0)
+
+    @property
     def index(self) -> np.ndarray:
         return np.array([NAMES.index(n) for n in self.estimated], dtype=int)
 
@@ -363,8 +371,11 @@ def fit(model: PatchModel, meas: MeasurementSet, rng: np.random.Generator | None
 
     Raises
     ------
+    InputError
+        Nothing to estimate (field ``estimation.estimate``), too few frames, points or observations, points off
+        the patch, missing inputs, unequal frame intervals (no file named: the caller attaches it).
     ValueError
-        Nothing to estimate, too few frames or points, points off the patch, missing inputs.
+        ``starts`` or ``max_evaluations`` below 1, ``starts > 1`` without ``rng``.
     """
     if starts < 1:
         raise ValueError(f"starts: at least 1 expected, got {starts}")
@@ -373,13 +384,13 @@ def fit(model: PatchModel, meas: MeasurementSet, rng: np.random.Generator | None
     cfg = model.config
     space = cfg.parameter_space()
     if space.dim == 0:
-        raise ValueError("estimation.estimate: empty; the fit needs at least one parameter to estimate")
+        raise InputError(None, "empty; the fit needs at least one parameter to estimate", "estimation.estimate")
     prob = problem or FitProblem(model, meas, frames, points)
     M = space.dim
     dof = prob.dof - M
     if dof <= 0:
-        raise ValueError(f"measurements: {3 * prob.n_obs} residuals leave no degrees of freedom for "
-                         f"{prob.n_points} point offsets and {M} parameters")
+        raise InputError(None, f"{3 * prob.n_obs} residuals leave no degrees of freedom for {prob.n_points} point "
+                               f"offsets and {M} parameters", "positions")
     lo, up, inner_lo, inner_up = _fit_bounds(space)
     theta_model = np.array(cfg.theta, float)
     x_model = space.x_from_theta(theta_model)
@@ -396,7 +407,7 @@ def fit(model: PatchModel, meas: MeasurementSet, rng: np.random.Generator | None
         res, rec = _run_start(fun, x0, lo, up, max_evaluations)
         rec["theta0"] = (theta_model if i == 0 else _theta_of(space, theta_model, x0)).tolist()
         rec["theta"] = None if res is None else _theta_of(space, theta_model, res.x).tolist()
-        log.info("fit start %d: %s", i, rec)
+        log.debug("fit start %d: %s", i, rec)
         results.append(res)
         records.append({k: rec[k] for k in ("theta0", "theta", "cost", "status", "evaluations", "message")})
     sizes = dict(frames=prob.frames, points=prob.n_points, observations=prob.n_obs, starts=tuple(records))
@@ -417,13 +428,14 @@ def fit(model: PatchModel, meas: MeasurementSet, rng: np.random.Generator | None
 
 
 def _run_start(fun, x0, lo, up, max_evaluations):
-    """One bounded least_squares run from ``x0``: ``(OptimizeResult or None, record)``."""
+    """One bounded least_squares run from ``x0``: ``(OptimizeResult or None, record)``; a start whose model
+    evaluation fails numerically (non-finite residuals, a matrix that does not factor) is recorded as failed."""
     from scipy.optimize import least_squares
 
     try:
         res = least_squares(fun, x0, jac="3-point", bounds=(lo, up), method="trf", x_scale="jac",
                             max_nfev=max_evaluations)
-    except (ValueError, FloatingPointError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
+    except (FloatingPointError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
         return None, {"cost": None, "status": -99, "evaluations": 0, "message": f"evaluation failed: {exc}"}
     return res, {"cost": float(res.cost), "status": int(res.status), "evaluations": int(res.nfev),
                  "message": str(res.message)}
@@ -487,10 +499,21 @@ def tracking_prior(cfg, fitted: FitResult):
     theta0 : ndarray (5,)
     prior_std : ndarray (M,)          phi units, the tracker's ``estimation.estimate`` order
     source : dict                     name -> 'fit' or 'model'
+
+    Raises
+    ------
+    InputError
+        A fitted value outside the model file's box ``estimation.bounds`` (field ``theta.<name>``; no file named:
+        the caller attaches the parameters file).
     """
     space = cfg.parameter_space()
     model_sd = cfg.prior_std_phi()
     theta0 = np.array(fitted.theta, float)
+    for i in range(len(NAMES)):
+        if not space.lower[i] <= theta0[i] <= space.upper[i]:
+            raise InputError(None, f"{NAMES[i]} = {theta0[i]:.6g} lies outside its bounds [{space.lower[i]:.6g}, "
+                                   f"{space.upper[i]:.6g}] of the model file (estimation.bounds.{NAMES[i]})",
+                             f"theta.{NAMES[i]}")
     jac = space.dtheta_dphi(space.to_phi(theta0))
     has_cov = fitted.cov_phi is not None or fitted.cov_theta is not None
     sd = model_sd.copy()

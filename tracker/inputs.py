@@ -8,9 +8,9 @@ All cardiac signals share the beat timing of :func:`cardiac_phase` (t_c = 0 at c
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 import functools
 import math
-from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.optimize import minimize_scalar

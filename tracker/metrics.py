@@ -44,8 +44,12 @@ __all__ = [
     "mean_noise_norm",
     "truth_error_norms",
     "measurement_truth_error_norms",
+    "times_mismatch",
     "sequence_mismatch",
     "estimator_metrics",
+    "compare_runs",
+    "truth_in_patch_frame",
+    "pose_magnitude",
 ]
 
 
@@ -220,16 +224,27 @@ def measurement_truth_error_norms(est: EstimateSet, truth_positions) -> np.ndarr
     return truth_error_norms(y, np.asarray(truth_positions, float)[:c])
 
 
-def sequence_mismatch(a: EstimateSet, b: EstimateSet, rtol: float = 1e-9) -> str | None:
-    """Why two estimate sets are not of the same sequence, or None if they are: different frame times
-    (count or values, to ``rtol`` of the duration), different point ids, or different
-    ``meta['inputs_hash']['measurements']`` where both record one."""
-    ta, tb = np.asarray(a.times, float), np.asarray(b.times, float)
+def times_mismatch(times_a, times_b, rtol: float = 1e-9) -> str | None:
+    """Why two frame-time arrays are not of the same sequence (``'31 vs 16 frames'``, ``'different frame
+    times'``: a value differs by more than ``rtol`` of the duration, at least of 1 s), or None if they are."""
+    ta, tb = np.asarray(times_a, float).ravel(), np.asarray(times_b, float).ravel()
     if ta.shape != tb.shape:
         return f"{ta.size} vs {tb.size} frames"
+    if not ta.size:
+        return None
     scale = max(abs(ta[-1] - ta[0]), abs(ta[-1]), 1.0)
     if not np.allclose(ta, tb, rtol=0.0, atol=rtol * scale):
         return "different frame times"
+    return None
+
+
+def sequence_mismatch(a: EstimateSet, b: EstimateSet, rtol: float = 1e-9) -> str | None:
+    """Why two estimate sets are not of the same sequence, or None if they are: different frame times
+    (:func:`times_mismatch`), different point ids, or different ``meta['inputs_hash']['measurements']`` where
+    both record one."""
+    why = times_mismatch(a.times, b.times, rtol)
+    if why is not None:
+        return why
     ia, ib = np.asarray(a.point_ids), np.asarray(b.point_ids)
     if ia.shape != ib.shape or not np.array_equal(ia, ib):
         return f"different point ids ({ia.size} vs {ib.size} points)" if ia.shape != ib.shape else \
@@ -239,6 +254,13 @@ def sequence_mismatch(a: EstimateSet, b: EstimateSet, rtol: float = 1e-9) -> str
     if ha and hb and ha != hb:
         return "different measurement files (meta inputs_hash.measurements)"
     return None
+
+
+def _last_by_name(rows) -> dict:
+    """The last row of a (c, 5) parameter array by name (NaN for every name when c = 0)."""
+    if not len(rows):
+        return dict.fromkeys(NAMES, np.nan)
+    return dict(zip(NAMES, map(float, rows[-1]), strict=True))
 
 
 def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.95) -> dict:
@@ -300,8 +322,7 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
                nis_in_band_fraction=ns["in_band_fraction"], nis_steps=ns["steps"])
     theta = np.asarray(est.theta, float)[:c]
     theta_std = np.asarray(est.theta_std, float)[:c]
-    last = (lambda a: dict(zip(NAMES, map(float, a[-1])))) if c else (lambda a: dict.fromkeys(NAMES, np.nan))
-    out.update(theta_final=last(theta), theta_std_final=last(theta_std))
+    out.update(theta_final=_last_by_name(theta), theta_std_final=_last_by_name(theta_std))
     st = step_time_statistics(np.asarray(est.step_time, float)[:c])
     out.update(step_time_median_s=st["median"], step_time_p95_s=st["p95"],
                truncation_events=int(np.asarray(est.truncation_events)[:c].sum()))
@@ -313,3 +334,109 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
         "theta": theta, "theta_std": theta_std, "step_time": np.asarray(est.step_time, float)[:c],
     }
     return out
+
+
+def _ratio(a, b) -> float | None:
+    """``a / b`` for finite a and finite positive b, else None."""
+    if a is None or b is None or not (np.isfinite(a) and np.isfinite(b) and b > 0):
+        return None
+    return float(a / b)
+
+
+def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=None, level: float = 0.95) -> dict:
+    """The metrics of several runs over one sequence (the numbers of ``heartcv report``'s metrics.json).
+
+    Parameters
+    ----------
+    runs : dict of {label: EstimateSet}
+        In report order; the first is the reference of the sequence summary.
+    truth_positions : dict of {label: ndarray (K, P, 3)}, optional
+        True positions of each run's points where known (frame of the predictions, m).
+    truth_theta : ndarray (K, 5), optional
+        True parameters per frame (SI).
+    level : float
+        Level of the NIS bands.
+
+    Returns
+    -------
+    dict
+        ``per_run``: label -> :func:`estimator_metrics` plus ``measurement_truth_error_mean_m`` (the
+        measurements' own truth error over the observations k >= 1, :func:`measurement_truth_error_norms`; NaN
+        without truth) and ``theta_truth_final`` (the truth's theta at the run's last completed step, by name;
+        None without a truth of that length); ``sequence``: ``frames``, ``duration_s``, ``points``, ``dt_s``
+        (median frame interval, None for one frame) and ``mixed`` (some run is of another sequence,
+        :func:`sequence_mismatch`); ``measurement_truth_error_mean_m`` (of the first run that has one, else
+        None); ``ratio_ge_to_kf_prediction_error`` and ``ratio_ge_to_kf_truth_error`` (runs labelled ``ge`` and
+        ``kf``; None without both or a non-positive denominator).
+    """
+    truth_positions = truth_positions or {}
+    per = {}
+    for label, est in runs.items():
+        pos = truth_positions.get(label)
+        m = estimator_metrics(est, pos, level)
+        m["measurement_truth_error_mean_m"] = (pooled_stats(measurement_truth_error_norms(est, pos)[1:])["mean"]
+                                               if pos is not None else np.nan)
+        c = completed(est)
+        m["theta_truth_final"] = (dict(zip(NAMES, map(float, np.asarray(truth_theta, float)[c - 1]), strict=True))
+                                  if truth_theta is not None and 0 < c <= len(truth_theta) else None)
+        per[label] = m
+    first = next(iter(runs.values()))
+    t = np.asarray(first.times, float)
+    own = [v for m in per.values() if np.isfinite(v := m["measurement_truth_error_mean_m"])]
+
+    def ratio(key):
+        ge, kf = per.get("ge"), per.get("kf")
+        return None if ge is None or kf is None else _ratio(ge[key], kf[key])
+
+    return {
+        "per_run": per,
+        "sequence": {"frames": int(t.size), "duration_s": float(t[-1] - t[0]), "points": int(first.point_ids.size),
+                     "dt_s": float(np.median(np.diff(t))) if t.size > 1 else None,
+                     "mixed": any(sequence_mismatch(first, est) is not None for est in runs.values())},
+        "measurement_truth_error_mean_m": own[0] if own else None,
+        "ratio_ge_to_kf_prediction_error": ratio("prediction_error_mean_m"),
+        "ratio_ge_to_kf_truth_error": ratio("truth_error_mean_m"),
+    }
+
+
+def _apply(T, X) -> np.ndarray:
+    T = np.asarray(T, float)
+    return np.asarray(X, float) @ T[:3, :3].T + T[:3, 3]
+
+
+def truth_in_patch_frame(true_positions, truth_from_rig, measured_ids, point_ids, patch_from_rig) -> np.ndarray:
+    """True trajectories of an estimate file's points in its patch frame, from a render truth.
+
+    Parameters
+    ----------
+    true_positions : ndarray (K, P_meas, 3)
+        True positions of the measured points (rig measurement file's order) in the truth's world frame.
+    truth_from_rig : ndarray (4, 4)
+        The gauge between the calibrated rig frame and the truth's frame (fitted to the birth positions).
+    measured_ids : ndarray (P_meas,)
+        Point ids of the measurement file.
+    point_ids : ndarray (P,)
+        Point ids of the estimate file.
+    patch_from_rig : ndarray (4, 4)
+        The registration the estimate file records.
+
+    Returns
+    -------
+    ndarray (K, P, 3)
+        NaN for a point that is not in the measurement file.
+    """
+    true_rig = _apply(np.linalg.inv(np.asarray(truth_from_rig, float)), true_positions)
+    col = {int(i): j for j, i in enumerate(np.asarray(measured_ids).ravel())}
+    idx = np.array([col.get(int(i), -1) for i in np.asarray(point_ids).ravel()], int)
+    have = idx >= 0
+    out = np.full((true_rig.shape[0], idx.size, 3), np.nan)
+    if have.any():
+        out[:, have] = _apply(patch_from_rig, true_rig[:, idx[have]])
+    return out
+
+
+def pose_magnitude(T) -> tuple[float, float]:
+    """Rotation angle (deg) and translation length (m) of a rigid transform (4, 4)."""
+    T = np.asarray(T, float)
+    cos = np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(T[:3, 3]))

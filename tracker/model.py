@@ -16,7 +16,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .config import ModelConfig
+from .config import MAX_FULL_DOF, ConfigError, ModelConfig
 from .discretise import DiscreteSystem, discretise
 from .fem import FEMatrices, assemble
 from .geometry import PatchMesh, build_mesh
@@ -25,9 +25,6 @@ from .params import lame
 __all__ = ["PatchModel", "Observation", "build_model", "MAX_FULL_DOF"]
 
 log = logging.getLogger(__name__)
-
-MAX_FULL_DOF = 3000
-"""Largest free-DOF count for which the full (unreduced) model is allowed."""
 
 
 @dataclass(frozen=True)
@@ -332,30 +329,65 @@ def _ritz_basis(fe, free, loads, theta, modes, static_nu, volume):
 
 
 def build_model(cfg: ModelConfig) -> PatchModel:
-    """Mesh, assemble, eliminate the clamped rim and (if configured) project on a Ritz basis."""
+    """Mesh, assemble, eliminate the clamped rim and (if configured) project on a Ritz basis.
+
+    A configuration from :func:`~heartcv.tracker.config.model_config_from_dict` builds, or the build raises
+    :class:`~heartcv.tracker.config.ConfigError` naming the field to change (a mesh too large for the full model,
+    a UKF ``kappa`` too negative for the state dimension, a mesh whose matrices are numerically singular).
+    """
+    ns, nt, nd = cfg.geometry.grid
+    n_free = 3 * (ns - 2) * (nt - 2) * nd
+    if cfg.reduction is None and n_free > MAX_FULL_DOF:  # checked before anything is allocated
+        raise ConfigError("geometry.grid", f"the model has {n_free} free DOFs; the full model allows at most "
+                                           f"{MAX_FULL_DOF}. Add a 'reduction' section (a fixed Ritz basis, "
+                                           "docs/model.md §5) or use a coarser grid")
     mesh = build_mesh(cfg.geometry)
     fe = assemble(mesh)
     free_nodes = np.flatnonzero(~mesh.rim_nodes)
     free = (3 * free_nodes[:, None] + np.arange(3)).ravel()
     loads_full = _load_columns(fe, cfg)[free]
     if cfg.reduction is None:
-        if free.size > MAX_FULL_DOF:
-            raise ValueError(
-                f"model has {free.size} free DOFs; the full model allows at most {MAX_FULL_DOF}. "
-                "Add a 'reduction' section (a fixed Ritz basis, docs/spec/model.md §3.5)."
-            )
         sub = np.ix_(free, free)
         Kl = fe.K_lambda[sub].toarray()
         Km = fe.K_mu[sub].toarray()
         M0 = fe.M0[sub].toarray()
-        return PatchModel(cfg, mesh, fe, free, None, Kl, Km, M0, loads_full)
-    V = _ritz_basis(fe, free, loads_full, cfg.theta, cfg.reduction["modes"], cfg.reduction["static_nu"],
-                    fe.volume)
-    sub = np.ix_(free, free)
+        model = PatchModel(cfg, mesh, fe, free, None, Kl, Km, M0, loads_full)
+    else:
+        try:
+            V = _ritz_basis(fe, free, loads_full, cfg.theta, cfg.reduction["modes"], cfg.reduction["static_nu"],
+                            fe.volume)
+        except (RuntimeError, ValueError, np.linalg.LinAlgError, spla.ArpackError) as exc:
+            # ArpackNoConvergence is an ArpackError; splu raises RuntimeError for a singular matrix
+            raise ConfigError("geometry", f"the reduced basis cannot be computed on this mesh ({exc}); check the "
+                                          "geometry's proportions and reduction.modes") from None
+        sub = np.ix_(free, free)
 
-    def project(A):
-        return np.asarray(V.T @ (A[sub] @ V))
+        def project(A):
+            return np.asarray(V.T @ (A[sub] @ V))
 
-    Kl, Km, M0 = project(fe.K_lambda), project(fe.K_mu), project(fe.M0)
-    sym = lambda A: 0.5 * (A + A.T)  # noqa: E731
-    return PatchModel(cfg, mesh, fe, free, V, sym(Kl), sym(Km), sym(M0), V.T @ loads_full)
+        Kl, Km, M0 = project(fe.K_lambda), project(fe.K_mu), project(fe.M0)
+        sym = lambda A: 0.5 * (A + A.T)  # noqa: E731
+        model = PatchModel(cfg, mesh, fe, free, V, sym(Kl), sym(Km), sym(M0), V.T @ loads_full)
+    _check_built(model)
+    return model
+
+
+def _check_built(model: PatchModel) -> None:
+    """Refuse a built model whose matrices are not finite or whose mass matrix is not positive definite, and a UKF
+    ``kappa`` that leaves no positive spread for this state dimension (``alpha^2 (n + kappa) > 0``)."""
+    cfg = model.config
+    for name, A in (("mass", model.M0), ("stiffness", model.K_lambda), ("stiffness", model.K_mu),
+                    ("load", model.loads)):
+        if not np.isfinite(A).all():
+            raise ConfigError("geometry", f"the {name} matrix of this mesh has non-finite entries; check the "
+                                          "geometry's proportions")
+    try:
+        np.linalg.cholesky(model.M0)
+    except np.linalg.LinAlgError:
+        raise ConfigError("geometry", "the mass matrix of this mesh is numerically singular; check the geometry's "
+                                      "proportions (element sizes along s, t and d)") from None
+    n = model.state_dim + len(cfg.estimation.estimate)
+    kappa = cfg.estimation.ukf["kappa"]
+    if n + kappa <= 0:
+        raise ConfigError("estimation.ukf.kappa", f"must exceed -n = {-n} (n: the joint state dimension of this "
+                                                  f"model), got {kappa}")

@@ -41,10 +41,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from .files import InputError
 from .measurements import MeasurementSet
 from .model import PatchModel
 
-__all__ = ["Registration", "register", "to_patch_frame"]
+__all__ = ["Registration", "register", "to_patch_frame", "register_rig_measurements", "registration_to_dict",
+           "apply_stored_registration"]
 
 MIN_POINTS = 6
 ALL_DOF = np.arange(6)  # pose increment: rotation vector (x, y, z), translation (x, y, z), patch frame
@@ -116,13 +118,15 @@ def _apply(T, X) -> np.ndarray:
 
 
 def _check_pose(T, name) -> np.ndarray:
+    """``T`` as a (4, 4) float array; InputError (field ``name``, no file) unless it is a finite rigid transform."""
     T = np.asarray(T, float)
     if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"{name}: finite (4, 4) rigid transform expected, got shape {T.shape}")
+        raise InputError(None, f"finite (4, 4) rigid transform expected, got shape {T.shape}", name)
     R = T[:3, :3]
     if (np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0
             or np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9):
-        raise ValueError(f"{name}: not a rigid transform (rotation block not orthonormal or last row not 0 0 0 1)")
+        raise InputError(None, "not a rigid transform (rotation block not orthonormal or last row not 0 0 0 1)",
+                         name)
     return T
 
 
@@ -170,15 +174,15 @@ def _data(meas: MeasurementSet, model: PatchModel, frames: int) -> _Data:
     rfi = meas.meta.get("reference_frame_index")
     rfi = np.zeros(meas.n_points, np.int64) if rfi is None else np.asarray(rfi, np.int64).reshape(-1)
     if rfi.size != meas.n_points:
-        raise ValueError(f"meta.reference_frame_index: {meas.n_points} entries expected, got {rfi.size}")
+        raise InputError(None, f"{meas.n_points} entries expected, got {rfi.size}", "meta.reference_frame_index")
     used = seen.any(axis=0) & (rfi < K)
     idx = np.flatnonzero(used)
     if idx.size < MIN_POINTS:
-        raise ValueError(f"register: at least {MIN_POINTS} points seen in the first {K} frames needed, "
-                         f"got {idx.size}")
+        raise InputError(None, f"registration onto the patch needs at least {MIN_POINTS} points seen in the first "
+                               f"{K} frames, got {idx.size}", "positions")
     try:
         u = meas.input_columns(model.input_names)
-    except ValueError:
+    except InputError:  # an input the model needs is missing: the surface alone places the patch
         u = np.zeros((meas.n_frames, 0))
     # undeformed reference (u = 0) unless the file says in which frame each point was born
     u_ref = u[rfi[idx]] if "reference_frame_index" in meas.meta else np.zeros((idx.size, u.shape[1]))
@@ -397,7 +401,9 @@ def _refine(T, data: _Data, g, comp, max_depth, use_motion, free=ALL_DOF):
             r_m, a, _ = _motion_fit(disp @ Tz[:3, :3].T, comp(std[pt, :2], du), fr, nf, w2)
             return std[:, 2], r_m, a
 
-        def res(z, w=np.sqrt(w2)):
+        w = np.sqrt(w2)
+
+        def res(z, w=w, sig_d=sig_d, sig_m=sig_m):
             xi = _expand(z, free)
             r_d, r_m, _ = raw(xi)
             # a weak pull to the start keeps directions along which the surface slides into itself put
@@ -453,8 +459,11 @@ def register(meas: MeasurementSet, model: PatchModel, *, frames: int = 10, initi
 
     Raises
     ------
+    InputError
+        Fewer than 6 points in the first frames, a ``meta.reference_frame_index`` of the wrong length (no file
+        named: the caller attaches it).
     ValueError
-        Wrong frame, fewer than 6 points in the first frames, a bad ``initial``.
+        Wrong frame, bad ``frames`` or ``max_depth``, a bad ``initial`` (InputError, field ``initial``).
     """
     if meas.frame != "rig":
         raise ValueError(f"measurements: frame 'rig' expected for registration, got {meas.frame!r}")
@@ -518,6 +527,11 @@ def to_patch_frame(meas: MeasurementSet, reg: Registration) -> MeasurementSet:
     pose and the dropped ids.
 
     Inputs are copied unchanged (``respiration_*`` columns are defined in the patch frame).
+
+    Raises
+    ------
+    InputError
+        None of the points lies on the patch (field ``registration``; no file named).
     """
     if meas.frame != "rig":
         raise ValueError(f"measurements: frame 'rig' expected, got {meas.frame!r}")
@@ -525,7 +539,7 @@ def to_patch_frame(meas: MeasurementSet, reg: Registration) -> MeasurementSet:
         raise ValueError(f"registration: on_patch for {meas.n_points} points expected, got {reg.on_patch.shape}")
     keep = np.flatnonzero(reg.on_patch)
     if keep.size == 0:
-        raise ValueError(f"registration: none of the {meas.n_points} points lies on the patch")
+        raise InputError(None, f"none of the {meas.n_points} points lies on the patch", "registration")
     R, t = reg.rotation, reg.translation
     pos = meas.positions[:, keep] @ R.T + t  # NaN stays NaN
     cov = R @ meas.covariances[:, keep] @ R.T
@@ -540,3 +554,70 @@ def to_patch_frame(meas: MeasurementSet, reg: Registration) -> MeasurementSet:
     return MeasurementSet(meas.times, meas.point_ids[keep], pos, cov, meas.reference[keep] @ R.T + t,
                           meas.inputs, meas.input_names, meas.input_units, "patch", meas.views[:, keep],
                           meas.reprojection_rms[:, keep], meta)
+
+
+# -- registration as the stages use it (heartcv fit, heartcv track --params) --------------------------------
+
+def register_rig_measurements(meas: MeasurementSet, model: PatchModel, frames: int = 10):
+    """Register a rig-frame measurement set onto the model (:func:`register`) and bring it into the patch frame.
+
+    Returns
+    -------
+    patch_meas : MeasurementSet or None
+        The patch-frame set (:func:`to_patch_frame`), None when the registration did not converge.
+    registration : Registration
+        ``converged`` False, with the reason in ``message``, when the surface does not explain the points.
+
+    Raises
+    ------
+    InputError
+        Too few points, or none on the patch (no file named: the caller attaches it).
+    """
+    reg = register(meas, model, frames=frames)
+    if not reg.converged:
+        return None, reg
+    return to_patch_frame(meas, reg), reg
+
+
+def registration_to_dict(reg: Registration, meas: MeasurementSet) -> dict:
+    """The ``registration`` entry of a parameters file (docs/formats.md §12): the transform, its RMS and the ids
+    of the points on the patch (ids survive filtering, so the registration can be applied to the same file
+    again, :func:`apply_stored_registration`)."""
+    return {
+        "patch_from_rig": np.asarray(reg.patch_from_rig, float).tolist(),
+        "rms_m": float(reg.rms_m),
+        "points_on_patch": [int(i) for i in np.asarray(meas.point_ids)[np.asarray(reg.on_patch, bool)]],
+        "message": str(reg.message),
+    }
+
+
+def apply_stored_registration(meas: MeasurementSet, registration: dict, source: str = "the parameters file"):
+    """Apply a registration stored by :func:`registration_to_dict` to a rig-frame measurement set (``heartcv
+    track --params``): the transform of the file, the points selected by id.
+
+    Parameters
+    ----------
+    meas : MeasurementSet
+        Rig frame.
+    registration : dict
+        ``patch_from_rig`` (4x4), ``rms_m``, ``points_on_patch`` (point ids).
+    source : str
+        Where the registration was read (for the ``message`` of the rebuilt :class:`Registration`).
+
+    Raises
+    ------
+    InputError
+        A transform that is not rigid (field ``registration.patch_from_rig``), or none of the registered points
+        in the measurement set (``registration.points_on_patch``: the parameters were fitted to another file);
+        no file named: the caller attaches the parameters file.
+    """
+    T = _check_pose(registration.get("patch_from_rig"), "registration.patch_from_rig")
+    ids = registration.get("points_on_patch") or []
+    on_patch = np.isin(np.asarray(meas.point_ids), np.asarray(ids, np.int64))
+    if not on_patch.any():
+        raise InputError(None, "none of the registered points is in the measurement file: the parameters were "
+                               "fitted to another file", "registration.points_on_patch")
+    rms = registration.get("rms_m")
+    reg = Registration(patch_from_rig=T, rms_m=float(rms) if isinstance(rms, (int, float)) else float("nan"),
+                       on_patch=on_patch, n_points=int(on_patch.sum()), converged=True, message=f"stored in {source}")
+    return to_patch_frame(meas, reg)

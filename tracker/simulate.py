@@ -18,9 +18,13 @@ from typing import Callable
 import numpy as np
 
 from . import inputs as inp
+from .files import InputError
 from .model import Observation, PatchModel
 
-__all__ = ["InputSignals", "Simulation", "input_signals", "simulate", "to_measurements"]
+__all__ = ["InputSignals", "Simulation", "input_signals", "simulate", "to_measurements", "stiffness_schedule",
+           "STIFFNESS_SHAPES"]
+
+STIFFNESS_SHAPES = ("active", "pressure")
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,81 @@ def input_signals(model: PatchModel) -> InputSignals:
     return InputSignals(model.input_names, load, translation)
 
 
+def stiffness_schedule(model: PatchModel, amplitude: float, shape: str = "active", *, load: Callable | None = None,
+                       t_offset: float = 0.0) -> Callable | None:
+    """True parameters whose Young's modulus follows the cardiac cycle, for :func:`simulate`'s ``theta``.
+
+    ``theta(t)`` is the model file's theta with ``E(t) = E (1 + a h(t - t_offset))``; ``h`` in [0, 1] is
+
+    * ``'active'``: the normalised double-Hill active-tension shape (:func:`tracker.inputs.active_tension` with
+      peak 1) at the model file's heart rate and RR intervals (myocardium, active contraction;
+      ``heartcv model simulate --stiffness-cycle``);
+    * ``'pressure'``: the model's pressure input ``max(p(t), 0) / p_max``, ``p_max`` its maximum over the first
+      three beats (silicone phantom, strain stiffening; ``heartcv render`` scenes).
+
+    Parameters
+    ----------
+    model : PatchModel
+    amplitude : float
+        ``a >= 0``; 0 gives None (the model file's constant theta).
+    shape : {'active', 'pressure'}
+    load : callable, optional
+        ``load(t) -> (len(t), n_u)`` in Pa, the inputs the truth is driven with (default: the model file's,
+        :func:`input_signals`); ``'pressure'`` reads its ``pressure`` column.
+    t_offset : float
+        Time (s) of the cycle's origin on the simulation's clock (a pre-roll before the first frame).
+
+    Returns
+    -------
+    callable or None
+        ``theta(t) -> ndarray (5,)``.
+
+    Raises
+    ------
+    InputError
+        ``'pressure'`` for a model without a pressure input or whose pressure is never positive (field
+        ``stiffness_cycle.shape``; no file: the caller attaches it).
+    """
+    if not (np.isfinite(amplitude) and amplitude >= 0):
+        raise ValueError(f"amplitude: a finite value >= 0 expected, got {amplitude}")
+    if shape not in STIFFNESS_SHAPES:
+        raise ValueError(f"shape: one of {STIFFNESS_SHAPES} expected, got {shape!r}")
+    if amplitude == 0:
+        return None
+    base = model.config.theta.copy()
+    ic = model.config.inputs
+    if shape == "pressure":
+        h = _pressure_shape(model, input_signals(model).load if load is None else load)
+    else:
+        def h(t):
+            return float(inp.active_tension(np.atleast_1d(t), heart_rate_bpm=ic.heart_rate_bpm, t_max=1.0,
+                                            rr_intervals=ic.rr_intervals)[0])
+
+    def theta(t):
+        th = base.copy()
+        th[3] = base[3] * (1.0 + amplitude * h(t - t_offset))
+        return th
+
+    return theta
+
+
+def _pressure_shape(model: PatchModel, load: Callable) -> Callable:
+    """``h(t) = max(p(t), 0) / p_max`` of the model's pressure column (:func:`stiffness_schedule`)."""
+    if "pressure" not in model.input_names:
+        raise InputError(None, "'pressure' needs a model with a pressure input (inputs.pressure)",
+                         "stiffness_cycle.shape")
+    col = model.input_names.index("pressure")
+    tt = np.linspace(0.0, 60.0 / model.config.inputs.heart_rate_bpm * 3, 3001)
+    p_max = float(np.max(load(tt)[:, col]))
+    if not p_max > 0:
+        raise InputError(None, "'pressure': the model's pressure is never positive", "stiffness_cycle.shape")
+
+    def h(t):
+        return max(float(load(np.atleast_1d(t))[0, col]), 0.0) / p_max
+
+    return h
+
+
 @dataclass(frozen=True)
 class Simulation:
     """Result of :func:`simulate` (all SI, patch frame).
@@ -107,6 +186,11 @@ class Simulation:
     positions: np.ndarray
     measurements: np.ndarray
     measurement_std: float
+
+    @property
+    def peak_displacement_m(self) -> float:
+        """Largest |x_k - x_0| over frames, points and coordinates of the exact positions (m)."""
+        return float(np.abs(self.positions - self.positions[:1]).max())
 
 
 def _theta_schedule(theta, times, model):

@@ -31,6 +31,7 @@ from typing import Callable
 import numpy as np
 from scipy import stats
 
+from .files import InputError
 from .joint import ESTIMATORS as JOINT_ESTIMATORS
 from .joint import run_joint
 from .model import PatchModel
@@ -74,8 +75,8 @@ class RunResult:
 
 
 def check_estimators(estimators, n_estimated: int) -> tuple:
-    """Validated, de-duplicated estimator names; ValueError naming an unknown one or a joint estimator on a
-    model that estimates no parameter."""
+    """Validated, de-duplicated estimator names; ValueError naming an unknown one, InputError (field
+    ``estimation.estimate``, no file named) for a joint estimator on a model that estimates no parameter."""
     names = tuple(dict.fromkeys(estimators))
     if not names:
         raise ValueError(f"estimators: at least one of {ESTIMATORS} expected")
@@ -84,8 +85,8 @@ def check_estimators(estimators, n_estimated: int) -> tuple:
             raise ValueError(f"estimators: unknown estimator {n!r}; choose from {ESTIMATORS}")
     joint = [n for n in names if n in JOINT_ESTIMATORS]
     if joint and n_estimated == 0:
-        raise ValueError(f"estimators: {', '.join(joint)} need at least one estimated parameter "
-                         "(estimation.estimate is empty)")
+        raise InputError(None, f"empty, but {', '.join(joint)} need at least one estimated parameter (the kf "
+                               "alone runs without)", "estimation.estimate")
     return names
 
 
@@ -108,17 +109,18 @@ def draw_initial_phi(phi_true, std, lower, upper, rng: np.random.Generator, acce
 
     Raises
     ------
-    ValueError
-        If no draw of ``max_tries`` lies inside the box.
+    InputError
+        If no draw of ``max_tries`` lies inside the box: the model file's prior is too wide for its box (field
+        ``estimation.prior_std``, no file named).
     """
     phi_true, std = np.asarray(phi_true, float), np.asarray(std, float)
     for tries in range(1, max_tries + 1):
         phi0 = phi_true + std * rng.standard_normal(phi_true.size)
         if np.all(phi0 > lower) and np.all(phi0 < upper) and (accept is None or accept(phi0)):
             return phi0, tries
-    raise ValueError(f"prior: none of {max_tries} draws of the initial parameters N(phi_true, "
-                     f"diag({np.round(std, 6).tolist()}^2)) lies inside the box (estimation.bounds, "
-                     "estimation.prior_std)")
+    raise InputError(None, f"none of {max_tries} draws of the initial parameters N(phi_true, "
+                           f"diag({np.round(std, 6).tolist()}^2)) lies inside the box estimation.bounds",
+                     "estimation.prior_std")
 
 
 def _trace(est, has_phi: bool) -> Trace:
@@ -133,12 +135,11 @@ def _diverged_trace(K: int, M: int, has_phi: bool, step: int) -> Trace:
                  np.zeros(K, np.int64), nan(K), int(step))
 
 
-def run_single(model: PatchModel, index: int, *, seed: int, runs: int, steps: int, estimators) -> RunResult:
-    """Run ``index`` of the study (module docstring): prior draw, simulation, every estimator."""
+def _prior_draw(model: PatchModel, seed_sequence: np.random.SeedSequence):
+    """Steps 1 and 2 of a run (module docstring): ``(generator, phi0, theta0, tries)``."""
     cfg = model.config
     space = cfg.parameter_space()
-    M = space.dim
-    g = np.random.default_rng(np.random.SeedSequence(seed).spawn(runs)[index])
+    g = np.random.default_rng(seed_sequence)
     lower, upper = space.bounds_phi
     idx = space.index
 
@@ -150,6 +151,14 @@ def run_single(model: PatchModel, index: int, *, seed: int, runs: int, steps: in
                                    accept=inside_theta)
     theta0 = np.array(cfg.theta, float)  # fixed parameters exactly as in the model file (no phi round trip)
     theta0[idx] = space.theta_from_x(phi0)[idx]
+    return g, phi0, theta0, tries
+
+
+def run_single(model: PatchModel, index: int, *, seed: int, runs: int, steps: int, estimators) -> RunResult:
+    """Run ``index`` of the study (module docstring): prior draw, simulation, every estimator."""
+    cfg = model.config
+    M = cfg.parameter_space().dim
+    g, phi0, theta0, tries = _prior_draw(model, np.random.SeedSequence(seed).spawn(runs)[index])
     sim = simulate(model, (steps - 1) / cfg.frame_rate, g.spawn(1)[0])
     meas = to_measurements(sim)
     if meas.n_frames != steps:  # pragma: no cover - guards the duration arithmetic
@@ -285,6 +294,9 @@ def run_study(model: PatchModel, *, runs: int, steps: int, seed: int = 0, estima
             if progress is not None:
                 progress(r + 1, runs)
     else:
+        # the prior draws are checked here first: a model whose prior misses its box fails in this process
+        for child in np.random.SeedSequence(int(seed)).spawn(runs):
+            _prior_draw(model, child)
         mine, other = model_fingerprint(model), set()
         ex = ProcessPoolExecutor(max_workers=min(workers, runs), initializer=_init_worker, initargs=(cfg.raw,))
         try:
@@ -430,7 +442,7 @@ def _num(x):
 def summary(study: StudyResult, statistics: dict) -> dict:
     """The study's summary as plain JSON values (SI units; None where a value is not defined)."""
     names = list(study.estimated)
-    per = lambda v: {n: _num(x) for n, x in zip(names, v)}  # noqa: E731
+    per = lambda v: {n: _num(x) for n, x in zip(names, v, strict=True)}  # noqa: E731
     band = lambda b: None if b is None else [_num(b[0]), _num(b[1])]  # noqa: E731
     out = {}
     for name, s in statistics.items():
@@ -454,7 +466,7 @@ def summary(study: StudyResult, statistics: dict) -> dict:
         "seed": study.seed,
         "dt_s": study.dt,
         "estimated": names,
-        "theta_true": {n: float(v) for n, v in zip(NAMES, study.theta_true)},
+        "theta_true": {n: float(v) for n, v in zip(NAMES, study.theta_true, strict=True)},
         "estimators": out,
     }
 

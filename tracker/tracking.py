@@ -13,8 +13,8 @@ import logging
 import time
 
 import numpy as np
-import scipy.linalg as sla
 
+from .files import InputError
 from .kalman import GaussianState, predict, update
 from .measurements import EstimateSet, MeasurementSet
 from .model import Observation, PatchModel
@@ -55,12 +55,16 @@ def locate_points(model: PatchModel, meas: MeasurementSet, *, max_depth=None) ->
     Points whose reference position lies outside the patch (in ``s``/``t``) or farther than ``max_depth``
     (default: a quarter of the thickness) from the epicardium are dropped. Surface points are projected onto
     the epicardium (``d = 0``).
+
+    Raises
+    ------
+    InputError
+        A rig-frame set (field ``meta.frame``) or one of which no point lies on the patch (``reference``); no
+        file is named: the caller attaches it (:meth:`InputError.in_file`).
     """
     if meas.frame != "patch":
-        raise ValueError(
-            "measurements: frame 'rig' needs registration onto the model first (heartcv fit); "
-            "this file is not in the patch frame"
-        )
+        raise InputError(None, "frame 'rig' needs registration onto the model first (heartcv fit); this file is "
+                               "not in the patch frame", "meta.frame")
     g = model.mesh.geometry
     param = g.from_patch(meas.reference)
     max_depth = 0.25 * g.thickness if max_depth is None else max_depth
@@ -71,10 +75,8 @@ def locate_points(model: PatchModel, meas: MeasurementSet, *, max_depth=None) ->
     )
     keep = np.flatnonzero(inside)
     if keep.size == 0:
-        raise ValueError(
-            f"measurements: none of the {meas.n_points} points lies on the model's patch "
-            f"(reference positions span {np.ptp(meas.reference, axis=0)} m; wrong units or frame?)"
-        )
+        raise InputError(None, f"none of the {meas.n_points} points lies on the model's patch (reference positions "
+                               f"span {np.ptp(meas.reference, axis=0)} m; wrong units or frame?)", "reference")
     p = param[keep].copy()
     p[:, 0] = np.clip(p[:, 0], -g.length / 2, g.length / 2)
     p[:, 1] = np.clip(p[:, 1], -g.width / 2, g.width / 2)
@@ -86,14 +88,15 @@ def locate_points(model: PatchModel, meas: MeasurementSet, *, max_depth=None) ->
 
 
 def frame_interval(model: PatchModel, meas: MeasurementSet) -> float:
-    """The constant frame interval of a measurement set (the model's for a single frame); ValueError if the
-    frame times are not equally spaced to 1e-6 relative."""
+    """The constant frame interval of a measurement set (the model's for a single frame); InputError (field
+    ``times``) if the frame times are not equally spaced to 1e-6 relative."""
     dts = np.diff(meas.times)
     if dts.size == 0:
         return model.config.dt
     dt = float(np.median(dts))
     if np.abs(dts - dt).max() > 1e-6 * dt:
-        raise ValueError("times: the estimators need a constant frame interval")
+        raise InputError(None, "the estimators need a constant frame interval (equally spaced frame times)",
+                         "times")
     return dt
 
 

@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from ..camera import invert_pose, pose_matrix
+from ..tracker.files import InputError
 from .parallel import imap_ordered
 from .scene import Scene, build_rig
 from .sensor import expose
@@ -84,7 +85,13 @@ def corner_visibility(rig, target, world_from_board):
 
 
 def sample_board_poses(scene: Scene, rig, target, rng: np.random.Generator):
-    """``(world_from_board (n, 4, 4), partial (n,) bool)`` for the scene's calibration section."""
+    """``(world_from_board (n, 4, 4), partial (n,) bool)`` for the scene's calibration section.
+
+    Raises
+    ------
+    InputError
+        Field ``calibration``: no pose of some view that two cameras see (the board does not fit the field of view).
+    """
     cal = scene.calibration
     n = cal.views
     n_partial = int(round(cal.partial_fraction * n))
@@ -120,9 +127,9 @@ def sample_board_poses(scene: Scene, rig, target, rng: np.random.Generator):
             poses[i] = T
             break
         else:
-            raise ValueError(f"calibration: no pose found for view {i} ({'partial' if partial[i] else 'complete'}) "
-                             "that at least two cameras see; the board may not fit the field of view "
-                             "(reduce max_tilt_deg, max_roll_deg or offset_m)")
+            raise InputError(None, f"no pose found for view {i} ({'partial' if partial[i] else 'complete'}) that at "
+                                   "least two cameras see; the board may not fit the field of view (reduce "
+                                   "max_tilt_deg, max_roll_deg or offset_m)", "calibration")
     return poses, partial
 
 

@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from ..tracker.files import InputError
 from .phantom import PhantomMesh, displacement_operator
 
 __all__ = ["TruthMotion", "SurfaceMotion", "simulate_truth", "surface_motion", "frame_count"]
@@ -86,12 +87,12 @@ def _stiffness_schedule(model, spec, load, t_pre):
     ic = model.config.inputs
     if spec.stiffness_shape == "pressure":
         if "pressure" not in model.input_names:
-            raise ValueError("motion.stiffness_cycle.shape: 'pressure' needs a model with a pressure input")
+            raise InputError(None, "'pressure' needs a model with a pressure input", "motion.stiffness_cycle.shape")
         col = model.input_names.index("pressure")
         tt = np.linspace(0.0, 60.0 / ic.heart_rate_bpm * 3, 3001)
         p_max = float(np.max(load(tt)[:, col]))
         if not p_max > 0:
-            raise ValueError("motion.stiffness_cycle.shape: the model's pressure is never positive")
+            raise InputError(None, "the model's pressure is never positive", "motion.stiffness_cycle.shape")
 
         def shape(t):
             return max(float(load(np.atleast_1d(t))[0, col]), 0.0) / p_max

@@ -25,6 +25,8 @@ import math
 import numpy as np
 import scipy.sparse as sp
 
+from ..tracker.files import InputError
+
 __all__ = ["PhantomMesh", "build_phantom", "smootherstep", "displacement_operator", "vertex_normals", "locate",
            "surface_points"]
 
@@ -90,8 +92,8 @@ def _profile(geometry, spec):
                                   (1, spec.base_m, spec.base_radius_m, ("base_m", "base_radius_m"))):
         span = end - x_e
         if span <= 2e-3:
-            raise ValueError(f"phantom.{names[0]}: the end must lie beyond the patch (> {1e3 * x_e + 2:.1f} mm "
-                             f"from its centre), got {1e3 * end:.1f} mm")
+            raise InputError(None, f"the end must lie beyond the patch (> {1e3 * x_e + 2:.1f} mm from its centre), "
+                                   f"got {1e3 * end:.1f} mm", f"phantom.{names[0]}")
         # F(u) = r^2 on u = (|x| - x_e) / span in [0, 1]: F(0), F'(0), F''(0) from the circle, F(1) = 0,
         # F'(1) = -2 rho span (round tip of curvature radius rho)
         a0, a1, a2 = r_e * r_e, 2 * r_e * dr * span, (dr * dr + r_e * d2r) * span * span
@@ -103,8 +105,8 @@ def _profile(geometry, spec):
         F = a0 + u * (a1 + u * (a2 + u * (a3 + u * a4)))
         dF = a1 + u * (2 * a2 + u * (3 * a3 + u * 4 * a4))
         if (F[:-1] <= 0).any() or (dF[1:] >= 0).any():
-            raise ValueError(f"phantom.{names[1]}: no round, monotonically narrowing end reaches {names[0]} = "
-                             f"{1e3 * end:.1f} mm with a tip radius of {1e3 * rho:.1f} mm; change either")
+            raise InputError(None, f"no round, monotonically narrowing end reaches {names[0]} = {1e3 * end:.1f} mm "
+                                   f"with a tip radius of {1e3 * rho:.1f} mm; change either", f"phantom.{names[1]}")
         x = sign * (x_e + span * u)
         r = np.sqrt(np.maximum(F, 0.0))
         r[-1] = 0.0
@@ -124,12 +126,12 @@ def build_phantom(geometry, spec) -> PhantomMesh:
     """The reference phantom mesh for the patch ``geometry`` (``tracker.geometry.PatchGeometry``) and the scene's
     ``phantom`` section (:class:`heartcv.render.scene.PhantomSpec`)."""
     if geometry.flat:
-        raise ValueError("phantom: the model's patch must be curved (finite radius_long and radius_circ)")
+        raise InputError(None, "the model's patch must be curved (finite radius_long and radius_circ)", "phantom")
     R1, R2 = geometry.radius_long, geometry.radius_circ
     half_s, half_t = geometry.length / 2, geometry.width / 2
     b_w = half_t / R2
     if b_w >= math.pi * 0.9:
-        raise ValueError("phantom: the patch wraps (almost) around its axis; use a larger radius_circ")
+        raise InputError(None, "the patch wraps (almost) around its axis; use a larger radius_circ", "phantom")
     h = spec.mesh_edge_m
     apex, base = _profile(geometry, spec)
     # meridian rows: exact patch rows on [-L/2, L/2], then outwards to the poles (the poles are single vertices)

@@ -24,8 +24,8 @@ __all__ = ["embree_available", "PixelGrid", "pixel_grid", "EmbreeScene", "Hits",
 def embree_available() -> bool:
     """Whether ``embreex`` (Embree 4 bindings, used by trimesh) imports."""
     try:
-        import embreex.rtcore_scene  # noqa: F401
         from embreex.mesh_construction import TriangleMesh  # noqa: F401
+        import embreex.rtcore_scene  # noqa: F401
     except ImportError:
         return False
     return True

@@ -9,10 +9,14 @@ top (-y). The world (= rig) frame is camera 0's frame.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..camera import Camera, Rig, invert_pose, pose_matrix
+
+if TYPE_CHECKING:  # scene.py imports this module
+    from .scene import RigSpec
 
 __all__ = ["ring_poses", "build_rig", "default_world_from_patch"]
 

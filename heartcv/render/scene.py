@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from ..tracker.files import InputError
 from .rig import build_rig, default_world_from_patch, ring_poses
 
 __all__ = ["SceneError", "Scene", "scene_from_dict", "build_rig", "ring_poses", "default_world_from_patch",
@@ -31,12 +32,16 @@ DEFAULT_TARGET = {"format": "heartcv.target", "format_version": 1, "name": "char
 """The target used when ``calibration.target`` is null (calibration_targets/charuco_11x8_12mm.yaml)."""
 
 
-class SceneError(ValueError):
-    """A scene field is missing, unknown or out of range; ``field`` names it (dotted path)."""
+MAX_IMAGE_PIXELS = 25_000_000
+"""Largest ``rig.image_size`` width x height (25 MP): one RGB float image stays below 1 GB."""
 
-    def __init__(self, field_name: str, message: str):
-        super().__init__(f"{field_name}: {message}")
-        self.field = field_name
+
+class SceneError(InputError):
+    """A scene field is missing, unknown or out of range; ``field`` names it (dotted path; None for the file as a
+    whole). An :class:`~heartcv.tracker.files.InputError` without a file (``heartcv.io.read_scene`` names it)."""
+
+    def __init__(self, field_name: str | None, message: str):
+        super().__init__(None, message, field_name)
 
 
 # -- typed sections -------------------------------------------------------------------------------
@@ -194,6 +199,35 @@ class Scene:
 
 
 # -- validation --------------------------------------------------------------------------------------
+def _show(v, n: int = 80) -> str:
+    """``repr`` of a value for a message, cut to ``n`` characters (a huge integer by its size)."""
+    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 64:
+        return f"an integer of about {'-' if v < 0 else ''}10^{int(v.bit_length() * math.log10(2))}"
+    if isinstance(v, (list, tuple)) and len(v) > 16:
+        return f"a list of {len(v)} entries"
+    try:
+        r = repr(v)
+    except ValueError:  # an integer too long to print, nested in a list
+        r = f"<{type(v).__name__}>"
+    return r if len(r) <= n else r[: n - 4] + " ..."
+
+
+def _as_float(v):
+    """A finite float of a YAML number (or numeric string), or None."""
+    if isinstance(v, str):  # PyYAML reads 1.0e-5 (no sign after e) as a string
+        try:
+            v = float(v)
+        except ValueError:
+            return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        v = float(v)
+    except OverflowError:  # an integer beyond the float range
+        return None
+    return v if math.isfinite(v) else None
+
+
 class _Fields:
     """Reads one mapping, tracking its dotted path for error messages and rejecting unknown keys."""
 
@@ -201,11 +235,12 @@ class _Fields:
         if data is None:
             data = {}
         if not isinstance(data, dict):
-            raise SceneError(path or "<root>", f"a mapping expected, got {type(data).__name__}")
+            raise SceneError(path or None, f"a mapping expected, got {type(data).__name__}"
+                             + ("" if path else " (a scene file is a YAML mapping, docs/formats.md §10)"))
         self.data, self.path, self.seen = dict(data), path, set()
 
     def name(self, key):
-        return f"{self.path}.{key}" if self.path else key
+        return f"{self.path}.{key}" if self.path else str(key)
 
     def raw(self, key, default=None):
         self.seen.add(key)
@@ -213,49 +248,50 @@ class _Fields:
 
     def number(self, key, default, lo=-math.inf, hi=math.inf, *, lo_open=False, integer=False):
         v = self.raw(key, default)
-        if isinstance(v, str):  # PyYAML reads 1.0e-5 (no sign after e) as a string
-            try:
-                v = float(v)
-            except ValueError:
-                raise SceneError(self.name(key), f"a number expected, got {v!r}") from None
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise SceneError(self.name(key), f"a finite number expected, got {v!r}")
-        if integer and float(v) != int(v):
-            raise SceneError(self.name(key), f"an integer expected, got {v!r}")
-        if (v <= lo if lo_open else v < lo) or v > hi:
-            raise SceneError(self.name(key), f"must lie in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {v!r}")
-        return int(v) if integer else float(v)
+        if integer and isinstance(v, int) and not isinstance(v, bool):  # exact, however large
+            x = v
+        else:
+            x = _as_float(v)
+            if x is None:
+                raise SceneError(self.name(key), f"a finite number expected, got {_show(v)}")
+            if integer:
+                if not x.is_integer():
+                    raise SceneError(self.name(key), f"an integer expected, got {_show(v)}")
+                x = int(x)
+        if (x <= lo if lo_open else x < lo) or x > hi:
+            raise SceneError(self.name(key), f"must lie in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {_show(v)}")
+        return int(x) if integer else float(x)
 
     def flag(self, key, default):
         v = self.raw(key, default)
         if not isinstance(v, bool):
-            raise SceneError(self.name(key), f"true or false expected, got {v!r}")
+            raise SceneError(self.name(key), f"true or false expected, got {_show(v)}")
         return v
 
     def choice(self, key, default, options):
         v = self.raw(key, default)
-        if v not in options:
-            raise SceneError(self.name(key), f"one of {list(options)} expected, got {v!r}")
+        if isinstance(v, (bool, float)) or not isinstance(v, (str, int)) or v not in options:
+            raise SceneError(self.name(key), f"one of {list(options)} expected, got {_show(v)}")
         return v
 
     def vector(self, key, default, n=None, lo=-math.inf, hi=math.inf, *, n_allowed=None):
         v = self.raw(key, default)
-        ok = isinstance(v, (list, tuple)) and all(
-            not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) and lo <= x <= hi for x in v)
         sizes = n_allowed or ((n,) if n is not None else None)
-        if not ok or (sizes is not None and len(v) not in sizes):
+        xs = [_as_float(x) for x in v] if isinstance(v, (list, tuple)) and len(v) <= 64 else None
+        ok = xs is not None and all(x is not None and lo <= x <= hi for x in xs)
+        if not ok or (sizes is not None and len(xs) not in sizes):
             want = f"{n} numbers" if n is not None else f"a list of {sizes} numbers" if sizes else "a list of numbers"
-            raise SceneError(self.name(key), f"{want} in [{lo:g}, {hi:g}] expected, got {v!r}")
-        return tuple(float(x) for x in v)
+            raise SceneError(self.name(key), f"{want} in [{lo:g}, {hi:g}] expected, got {_show(v)}")
+        return tuple(xs)
 
     def section(self, key):
         self.seen.add(key)
         return _Fields(self.data.get(key), self.name(key))
 
     def done(self):
-        unknown = sorted(set(self.data) - self.seen)
+        unknown = sorted(set(self.data) - self.seen, key=str)
         if unknown:
-            raise SceneError(self.name(unknown[0]), f"unknown field (known: {sorted(self.seen)})")
+            raise SceneError(self.name(unknown[0]), f"unknown field (known: {sorted(self.seen, key=str)})")
 
 
 _DIST_SIZES = (0, 4, 5, 8, 12, 14)
@@ -267,10 +303,16 @@ def _rig(f: _Fields) -> RigSpec:
     size = f.vector("image_size", d.image_size, 2, 16, 20000)
     if any(s != int(s) for s in size):
         raise SceneError(f.name("image_size"), f"two integers [width, height] expected, got {list(size)}")
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise SceneError(f.name("image_size"), f"{int(size[0])} x {int(size[1])} px; at most {MAX_IMAGE_PIXELS} "
+                                               "pixels allowed")
     dist = f.vector("distortion", d.distortion, n_allowed=_DIST_SIZES, lo=-10, hi=10)
     per = f.raw("per_camera", [])
+    if per is None:
+        per = []
     if not isinstance(per, list) or len(per) > n:
-        raise SceneError(f.name("per_camera"), f"a list of at most {n} mappings (one per camera) expected")
+        raise SceneError(f.name("per_camera"), f"a list of at most {n} mappings (one per camera) expected, got "
+                                               f"{_show(per)}")
     per_camera = []
     for i, entry in enumerate(per):
         p = _Fields(entry, f.name(f"per_camera[{i}]"))
@@ -316,7 +358,7 @@ def _calibration(f: _Fields) -> CalibrationSpec:
     d = CalibrationSpec()
     target = f.raw("target", d.target)
     if target is not None and (not isinstance(target, str) or not target.strip()):
-        raise SceneError(f.name("target"), f"a target file path or null expected, got {target!r}")
+        raise SceneError(f.name("target"), f"a target file path or null expected, got {_show(target)}")
     white = f.number("white", d.white, 0, 1)
     black = f.number("black", d.black, 0, 1)
     if black >= white:
@@ -360,9 +402,13 @@ def _pose(f: _Fields, key):
     v = f.raw(key)
     if v is None:
         return None
-    T = np.asarray(v, float) if isinstance(v, list) else None
-    if T is None or T.shape != (4, 4) or not np.isfinite(T).all():
-        raise SceneError(f.name(key), "a 4x4 matrix (list of 4 rows) or null expected")
+    rows = [[_as_float(x) for x in r] if isinstance(r, list) and len(r) == 4 else None
+            for r in v] if isinstance(v, list) and len(v) == 4 else None
+    T = np.array(rows, float) if rows is not None and all(r is not None and None not in r for r in rows) else None
+    if T is None:
+        raise SceneError(f.name(key), "a 4x4 matrix (list of 4 rows of 4 finite numbers) or null expected")
+    if np.abs(T).max() > 100:
+        raise SceneError(f.name(key), "entries within [-100, 100] expected (a rotation and a translation in m)")
     R = T[:3, :3]
     if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0 or np.abs(T[3] - [0, 0, 0, 1]).max() > 0:
         raise SceneError(f.name(key), "not a rigid transform (R^T R = I, det R = +1, last row [0 0 0 1])")
@@ -387,7 +433,7 @@ def _motion(f: _Fields) -> MotionSpec:
     d = MotionSpec()
     model = f.raw("model", None)
     if not isinstance(model, str) or not model.strip():
-        raise SceneError(f.name("model"), f"a model file path is required, got {model!r}")
+        raise SceneError(f.name("model"), f"a model file path is required, got {_show(model)}")
     st = f.section("stiffness_cycle")
     amp = st.number("amplitude", d.stiffness_amplitude, 0, 20)
     shape = st.choice("shape", d.stiffness_shape, ("pressure", "active"))
@@ -449,13 +495,13 @@ def scene_from_dict(data) -> Scene:
     root = _Fields(data, "")
     fmt = root.raw("format", FORMAT)
     if fmt != FORMAT:
-        raise SceneError("format", f"{FORMAT!r} expected, got {fmt!r}")
+        raise SceneError("format", f"{FORMAT!r} expected, got {_show(fmt)}")
     ver = root.raw("format_version", FORMAT_VERSION)
-    if ver != FORMAT_VERSION:
-        raise SceneError("format_version", f"{FORMAT_VERSION} supported, got {ver!r}")
+    if isinstance(ver, bool) or ver != FORMAT_VERSION:
+        raise SceneError("format_version", f"{FORMAT_VERSION} supported, got {_show(ver)}")
     name = root.raw("name", "scene")
     if not isinstance(name, str) or not name.strip():
-        raise SceneError("name", f"a non-empty string expected, got {name!r}")
+        raise SceneError("name", f"a non-empty string expected, got {_show(name)}")
     root.raw("description")
     seed = root.number("seed", 0, 0, 2**63 - 1, integer=True)
     scene = Scene(name, seed, _rig(root.section("rig")), _optics(root.section("optics")),

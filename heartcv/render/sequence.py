@@ -302,24 +302,26 @@ def inputs_table(setup: SequenceSetup):
     return cols, np.hstack(vals)
 
 
-def sequence_truth(setup: SequenceSetup, instrument_masks=None) -> tuple[dict, dict]:
+def sequence_truth(setup: SequenceSetup, instrument_masks=None, frames: int | None = None) -> tuple[dict, dict]:
     """Arrays and metadata of ``truth.npz`` (format ``heartcv.render_truth`` v1, kind ``sequence``; see
     docs/formats.md). ``instrument_masks``: the rendered frames' instrument masks bit-packed along the rows,
-    ``numpy.packbits(mask, axis=-1)`` of each (n_cam, H, W) mask, stacked (K, n_cam, H, ceil(W / 8)), if any."""
+    ``numpy.packbits(mask, axis=-1)`` of each (n_cam, H, W) mask, stacked (K, n_cam, H, ceil(W / 8)), if any.
+    ``frames``: the truth of the first ``frames`` frames only (every per-frame array; default all)."""
     s, truth, ph = setup.surface, setup.surface.truth, setup.surface.phantom
     T = s.world_from_patch
-    K = setup.n_frames
+    K = setup.n_frames if frames is None else min(int(frames), setup.n_frames)
+    times = np.asarray(setup.frame_times)[:K]
     verts = np.empty((K, ph.n_vertices, 3), np.float32)
-    for k, t in enumerate(setup.frame_times):
+    for k, t in enumerate(times):
         verts[k] = s.positions_world(t)
     to_world = lambda X: X @ T[:3, :3].T + T[:3, 3]  # noqa: E731
     cams = setup.rig.cameras
     arrays = {
-        "times": setup.frame_times, "theta": truth.theta, "inputs": truth.inputs,
-        "translation": truth.translation(setup.frame_times) if truth.translation else np.zeros((K, 3)),
+        "times": times, "theta": truth.theta[:K], "inputs": truth.inputs[:K],
+        "translation": truth.translation(times) if truth.translation else np.zeros((K, 3)),
         "world_from_patch": T, "faces": ph.faces, "reference_vertices": to_world(ph.vertices),
         "vertex_material": ph.material, "vertex_in_patch": ph.in_patch, "vertex_positions": verts,
-        "point_param": truth.point_param, "point_positions": to_world(truth.point_positions),
+        "point_param": truth.point_param, "point_positions": to_world(truth.point_positions[:K]),
         "fiducial_material": setup.texture.fiducials,
         "K": np.stack([c.K for c in cams]), "cam_from_world": np.stack([c.cam_from_rig for c in cams]),
         "cam_from_rig": np.stack([c.cam_from_rig for c in cams]),
@@ -331,8 +333,8 @@ def sequence_truth(setup: SequenceSetup, instrument_masks=None) -> tuple[dict, d
         face, bary = locate(ph, setup.texture.fiducials)
         arrays["fiducial_positions"] = np.einsum("nc,kncj->knj", bary, verts[:, ph.faces[face]]).astype(np.float32)
     if setup.instrument is not None:
-        arrays["instrument_tip"] = np.array([setup.instrument.tip(t) for t in setup.frame_times])
-        arrays["instrument_present"] = np.array([setup.instrument.present(t) for t in setup.frame_times])
+        arrays["instrument_tip"] = np.array([setup.instrument.tip(t) for t in times])
+        arrays["instrument_present"] = np.array([setup.instrument.present(t) for t in times])
         if instrument_masks is not None:
             arrays["instrument_mask"] = np.asarray(instrument_masks, np.uint8)
     meta = {"kind": "sequence", "scene": setup.scene.name, "seed": setup.scene.seed,

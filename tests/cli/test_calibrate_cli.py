@@ -7,9 +7,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
 from heartcv.targets import TargetSpec
@@ -375,3 +375,40 @@ def test_synthetic_cameras_without_shared_view(tmp_path, syn_set, syn_target):
     assert ("calibration failed: cameras cam1, cam2 share no usable view with cam0 or with a camera linked to it"
             in res.stderr)
     _assert_nothing_written(out_dir)
+
+
+# -- the cores the command calls (heartcv.calibration.select_views, heartcv.calibration_rig.kalibr_limitation) -------
+def test_select_views_drops_unreadable_and_odd_sized_images():
+    from heartcv.calibration import select_views
+    from heartcv.detect import Detection
+
+    def det(n):
+        return Detection(np.arange(n), np.zeros((n, 2)))
+
+    results = {(0, 0): ((640, 480), det(4)), (0, 1): (None, "a/1.png: truncated"), (0, 2): ((320, 240), det(4)),
+               (0, 3): ((640, 480), det(0)), (1, 0): (None, "b/0.png: empty file")}
+    sel = select_views(results, ["a", "b"], ["v0", "v1", "v2", "v3"])
+    assert sel.sizes == [(640, 480), None] and sel.used == [(0, 0), (0, 3)]
+    assert [None if d is None else len(d) for d in sel.detections[0]] == [4, None, None, 0]
+    assert sel.detections[1] == [None] * 4 and sel.counts == [(4, 1), (1, 0)]
+    assert sel.warnings == ["skipped: a/1.png: truncated",
+                            "skipped: a/v2: image is 320x240 px, the camera's other images are 640x480 px",
+                            "skipped: b/0.png: empty file", "b: none of its 1 images could be read"]
+
+
+def test_kalibr_limitation():
+    from dataclasses import replace
+
+    from heartcv.calibration_rig import kalibr_limitation
+    from heartcv.camera import Rig
+
+    cams = _syn_cameras()
+    assert kalibr_limitation(Rig(tuple(cams))) is None                       # k3 = 0 in 5 coefficients: fine
+    cams[1] = replace(cams[1], dist=np.array([0.1, 0.01, 0.0, 0.0, 0.002]))
+    assert kalibr_limitation(Rig(tuple(cams))) == (
+        "cam1: Kalibr's radtan model has k1, k2, p1, p2 only; non-zero {'k3': 0.002} (calibrate with 4 or 5 "
+        "coefficients and k3 fixed at 0 for a Kalibr export)")
+    K = cams[0].K.copy()
+    K[0, 1] = 0.5
+    cams[0] = replace(cams[0], K=K)
+    assert kalibr_limitation(Rig(tuple(cams))) == "cam0: K has skew 0.5; Kalibr's pinhole model has none"

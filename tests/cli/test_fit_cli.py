@@ -1,19 +1,16 @@
 """CLI: heartcv fit and heartcv track --params (CliRunner, exit codes, artifacts read back)."""
 
 import json
-import sys
-import types
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from heartcv.cli.fit import fit as fit_cmd
 from heartcv.cli.main import main
-from tests.conftest import SAMPLES
 from heartcv.tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
 from heartcv.tracker.measurements import MeasurementSet
 from heartcv.tracker.params import NAMES
+from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
 SIMULATION = str(SAMPLES / "paper_simulation.yaml")
@@ -43,7 +40,7 @@ def test_fit_json_file_and_recovery(files, tmp_path):
     """All five parameters of paper_simulation from a `model simulate` file: |z| < 3.5 each (measured: all
     within 0.82 sigma for seed 3); the JSON summary and the file agree."""
     out = tmp_path / "p.yaml"
-    s = _ok(CliRunner().invoke(fit_cmd, [files["sim"], "--model", SIMULATION, "-o", str(out), "--json"]))
+    s = _ok(CliRunner().invoke(main, ["fit", files["sim"], "--model", SIMULATION, "-o", str(out), "--json"]))
     for key in ("theta", "theta_std", "cost", "converged", "frames", "points", "starts", "iterations",
                 "reduced_chi2", "estimated", "fixed", "covariance_scaled", "dof", "message", "at_bound"):
         assert key in s, key
@@ -61,7 +58,7 @@ def test_fit_json_file_and_recovery(files, tmp_path):
 
 def test_fit_frames_and_seed(files, tmp_path):
     out = tmp_path / "p.yaml"
-    s = _ok(CliRunner().invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(out), "--frames", "20",
+    s = _ok(CliRunner().invoke(main, ["fit", files["patch"], "--model", PAPER, "-o", str(out), "--frames", "20",
                                          "--starts", "2", "--seed", "5", "--json"]))
     assert s["frames"] == 20 and s["starts"] == 2 and s["estimated"] == ["E", "nu"]
     assert s["fixed"] == ["rho", "alpha1", "alpha2"] and s["theta_std"]["rho"] == 0.0
@@ -70,7 +67,7 @@ def test_fit_frames_and_seed(files, tmp_path):
 
 def test_fit_not_converged_exits_1_and_writes_nothing(files, tmp_path):
     out = tmp_path / "p.yaml"
-    r = CliRunner().invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(out), "--max-evaluations", "1"])
+    r = CliRunner().invoke(main, ["fit", files["patch"], "--model", PAPER, "-o", str(out), "--max-evaluations", "1"])
     assert r.exit_code == 1 and "did not converge" in r.output and "nothing written" in r.output
     assert not out.exists() and not list(tmp_path.iterdir())
 
@@ -82,15 +79,15 @@ def test_fit_bad_input_exits_2(files, tmp_path):
     write_measurements(mm, MeasurementSet(m.times, m.point_ids, m.positions * 1e3, m.covariances * 1e6,
                                           m.reference * 1e3, m.inputs, m.input_names, m.input_units))
     out = tmp_path / "p.yaml"
-    r = runner.invoke(fit_cmd, [str(mm), "--model", PAPER, "-o", str(out)])
+    r = runner.invoke(main, ["fit", str(mm), "--model", PAPER, "-o", str(out)])
     assert r.exit_code == 2 and "none of the 14 points lies on the model's patch" in r.output
-    r = runner.invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(tmp_path / "p.txt")])
+    r = runner.invoke(main, ["fit", files["patch"], "--model", PAPER, "-o", str(tmp_path / "p.txt")])
     assert r.exit_code == 2 and ".yaml" in r.output
-    r = runner.invoke(fit_cmd, [str(tmp_path / "missing.npz"), "--model", PAPER, "-o", str(out)])
+    r = runner.invoke(main, ["fit", str(tmp_path / "missing.npz"), "--model", PAPER, "-o", str(out)])
     assert r.exit_code == 2
     empty = tmp_path / "empty.yaml"
     empty.write_text((SAMPLES / "paper_patch.yaml").read_text().replace("estimate: [E, nu]", "estimate: []"))
-    r = runner.invoke(fit_cmd, [files["patch"], "--model", str(empty), "-o", str(out)])
+    r = runner.invoke(main, ["fit", files["patch"], "--model", str(empty), "-o", str(out)])
     assert r.exit_code == 2 and "nothing to fit" in r.output
     assert not out.exists()
 
@@ -99,7 +96,7 @@ def test_fit_bad_input_exits_2(files, tmp_path):
 @pytest.fixture(scope="module")
 def params(files):
     out = files["dir"] / "patch_params.yaml"
-    r = CliRunner().invoke(fit_cmd, [files["patch"], "--model", PAPER, "-o", str(out)])
+    r = CliRunner().invoke(main, ["fit", files["patch"], "--model", PAPER, "-o", str(out)])
     assert r.exit_code == 0, r.output
     return out
 
@@ -144,7 +141,9 @@ def test_track_params_errors(files, params, tmp_path):
                    "theta: {rho: 1050, alpha1: 2.39, alpha2: 0.003, E: 5.0e+8, nu: 0.45}\n")
     r = runner.invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(out), "--estimator", "ge",
                              "-o", str(tmp_path / "e.npz")])
-    assert r.exit_code == 2 and "outside its bounds" in r.output
+    assert r.exit_code == 2
+    assert f"Error: {out}: theta.E: E = 5e+08 lies outside its bounds [" in r.stderr
+    assert "of the model file (estimation.bounds.E)" in r.stderr
     assert not (tmp_path / "e.npz").exists()
 
 
@@ -161,25 +160,27 @@ def _transform(T, m: MeasurementSet, keep, frame):
 
 @pytest.fixture
 def fake_registration(monkeypatch):
-    """A stand-in for tracker.registration's functions (its Registration type): it knows the true transform."""
+    """tracker.registration.register and to_patch_frame replaced by stand-ins that know the true transform (the
+    stages call them through tracker.registration's register_rig_measurements and apply_stored_registration)."""
+    from heartcv.tracker import registration
     from heartcv.tracker.registration import Registration
 
     calls = []
+    state = {"converged": True}
 
     def register(meas, model, *, frames=10, initial=None):
         on = np.ones(meas.n_points, bool)
         on[0] = False  # pretend the first point lies off the patch
         calls.append(frames)
-        return Registration(np.linalg.inv(RIG_FROM_PATCH), 2e-5, on, int(on.sum()), True, "ok")
+        return Registration(np.linalg.inv(RIG_FROM_PATCH), 2e-5, on, int(on.sum()), state["converged"], "ok")
 
     def to_patch_frame(meas, reg):
         calls.append("apply")
         return _transform(np.asarray(reg.patch_from_rig), meas, np.flatnonzero(reg.on_patch), "patch")
 
-    mod = types.ModuleType("heartcv.tracker.registration")
-    mod.Registration, mod.register, mod.to_patch_frame = Registration, register, to_patch_frame
-    monkeypatch.setitem(sys.modules, "heartcv.tracker.registration", mod)
-    return calls
+    monkeypatch.setattr(registration, "register", register)
+    monkeypatch.setattr(registration, "to_patch_frame", to_patch_frame)
+    return calls, state
 
 
 def test_rig_frame_fit_registers_and_track_reuses_it(files, tmp_path, fake_registration):
@@ -187,7 +188,7 @@ def test_rig_frame_fit_registers_and_track_reuses_it(files, tmp_path, fake_regis
     rig = tmp_path / "rig.npz"
     write_measurements(rig, _transform(RIG_FROM_PATCH, m, np.arange(m.n_points), "rig"))
     out = tmp_path / "p.yaml"
-    s = _ok(CliRunner().invoke(fit_cmd, [str(rig), "--model", PAPER, "-o", str(out), "--json"]))
+    s = _ok(CliRunner().invoke(main, ["fit", str(rig), "--model", PAPER, "-o", str(out), "--json"]))
     assert s["points"] == 13 and s["registration_rms_m"] == 2e-5
     p = read_parameters(out)
     np.testing.assert_array_equal(p.registration["patch_from_rig"], np.linalg.inv(RIG_FROM_PATCH))
@@ -196,7 +197,7 @@ def test_rig_frame_fit_registers_and_track_reuses_it(files, tmp_path, fake_regis
     _ok(CliRunner().invoke(main, ["track", str(rig), "--model", PAPER, "--params", str(out), "-o", str(est),
                                   "--json"]))
     e = read_estimates(est)
-    assert fake_registration == [10, "apply", "apply"]
+    assert fake_registration[0] == [10, "apply", "apply"]
     assert e.point_ids.tolist() == m.point_ids[1:].tolist() and np.array_equal(e.theta[0], p.theta)
     # the same parameters on the patch-frame file: registration not applied, with a warning
     r = CliRunner().invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(out), "-o",
@@ -204,15 +205,16 @@ def test_rig_frame_fit_registers_and_track_reuses_it(files, tmp_path, fake_regis
     assert r.exit_code == 0 and "not applied" in r.output
 
 
-def test_rig_frame_without_registration_module_exits_2(files, tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "heartcv.tracker.registration", None)  # import fails
+def test_rig_frame_registration_that_does_not_converge_exits_1(files, tmp_path, fake_registration):
+    fake_registration[1]["converged"] = False
     m = read_measurements(files["patch"])
     rig = tmp_path / "rig.npz"
     write_measurements(rig, _transform(RIG_FROM_PATCH, m, np.arange(m.n_points), "rig"))
     out = tmp_path / "p.yaml"
-    r = CliRunner().invoke(fit_cmd, [str(rig), "--model", PAPER, "-o", str(out)])
-    assert r.exit_code == 2 and "registration" in r.output and "not available" in r.output
-    assert not out.exists()
+    r = CliRunner().invoke(main, ["fit", str(rig), "--model", PAPER, "-o", str(out)])
+    assert r.exit_code == 1
+    assert f"registration onto the patch did not converge (ok); nothing written to {out}" in r.output
+    assert fake_registration[0] == [10] and not out.exists()
 
 
 def test_rig_frame_track_needs_a_registration_in_params(files, params, tmp_path, fake_registration):
@@ -234,6 +236,6 @@ def test_fit_recovery_over_seeds_cli(tmp_path):
         assert runner.invoke(main, ["model", "simulate", SIMULATION, "--duration", "3", "--seed", str(seed), "-o",
                                     str(meas)]).exit_code == 0
         out = tmp_path / f"p{seed}.yaml"
-        s = _ok(runner.invoke(fit_cmd, [str(meas), "--model", SIMULATION, "-o", str(out), "--json"]))
+        s = _ok(runner.invoke(main, ["fit", str(meas), "--model", SIMULATION, "-o", str(out), "--json"]))
         z = (np.array([s["theta"][n] for n in NAMES]) - truth) / np.array([s["theta_std"][n] for n in NAMES])
         assert np.abs(z).max() < 3.5 and s["reduced_chi2"] < 1 + 5 * np.sqrt(2 / s["dof"])

@@ -9,13 +9,13 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
-import shutil
 from pathlib import Path
+import shutil
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
 from tests.heartcv.render_scenes import scene_dict, write_truth_model
@@ -182,8 +182,8 @@ def test_different_frame_counts_exit_2_naming_the_counts(case):
 
 
 def test_rig_of_another_image_size_exit_2(case):
-    from heartcv.io import read_rig, write_rig
     from heartcv.camera import Camera, Rig
+    from heartcv.io import read_rig, write_rig
 
     rig = read_rig(case["rig"])
     cams = list(rig.cameras)
@@ -196,9 +196,10 @@ def test_rig_of_another_image_size_exit_2(case):
 
 
 def test_rig_camera_names_not_in_sequence_exit_2(case):
+    from dataclasses import replace
+
     from heartcv.camera import Rig
     from heartcv.io import read_rig, write_rig
-    from dataclasses import replace
 
     rig = read_rig(case["rig"])
     write_rig(case["rig"], Rig(tuple(replace(c, name=n) for c, n in zip(rig.cameras, ("left", "cam1", "right")))))

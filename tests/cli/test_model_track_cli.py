@@ -4,14 +4,14 @@ import json
 import os
 from pathlib import Path
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
-from tests.conftest import SAMPLES
 from heartcv.tracker.io import read_estimates, read_measurements, read_truth
+from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
 
@@ -70,6 +70,12 @@ def test_simulate_with_stiffness_cycle_and_missing(runner, tmp_path):
     t, _ = read_truth(truth)
     E = t["theta"][:, 3]
     assert E.min() == pytest.approx(150e3) and E.max() > 1.8 * 150e3
+    # E(t) = E (1 + a h(t)), h the normalised active-tension shape at the model's 60 bpm (tracker.inputs)
+    from heartcv.tracker.inputs import active_tension
+
+    h = active_tension(t["times"], heart_rate_bpm=60.0, t_max=1.0)
+    np.testing.assert_allclose(E, 150e3 * (1.0 + 1.0 * h), rtol=1e-15, atol=0)
+    assert (t["theta"][:, [0, 1, 2, 4]] == [1050.0, 2.39, 0.003, 0.45]).all()
     assert np.isnan(read_measurements(meas).positions).any()
     est = str(tmp_path / "e.npz")
     out = _json(runner.invoke(main, ["track", meas, "--model", PAPER, "-o", est, "--json"]))
@@ -146,3 +152,25 @@ def test_missing_input_column_exits_2(runner, tmp_path):
 def test_help_is_fast_and_lists_commands(runner):
     res = runner.invoke(main, ["--help"])
     assert res.exit_code == 0 and "model" in res.output and "track" in res.output
+
+
+def test_stiffness_schedule_shapes(paper_model):
+    """tracker.simulate.stiffness_schedule, the one E(t) of model simulate, the render scenes and the tests."""
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.inputs import active_tension
+    from heartcv.tracker.simulate import input_signals, stiffness_schedule
+
+    assert stiffness_schedule(paper_model, 0.0) is None
+    base = paper_model.config.theta
+    active = stiffness_schedule(paper_model, 0.5, "active", t_offset=0.2)
+    th = active(0.5)
+    assert th[3] == base[3] * (1.0 + 0.5 * float(active_tension(np.array([0.3]), 60.0, 1.0)[0]))
+    assert (th[[0, 1, 2, 4]] == base[[0, 1, 2, 4]]).all()
+    load = input_signals(paper_model).load
+    p_max = load(np.linspace(0.0, 3.0, 3001))[:, 0].max()
+    pressure = stiffness_schedule(paper_model, 2.0, "pressure")
+    for t in (0.0, 0.31, 0.77):
+        assert pressure(t)[3] == base[3] * (1.0 + 2.0 * max(float(load(np.array([t]))[0, 0]), 0.0) / p_max)
+    with pytest.raises(InputError) as exc:
+        stiffness_schedule(paper_model, 1.0, "pressure", load=lambda t: -np.ones((np.size(t), 1)))
+    assert exc.value.field == "stiffness_cycle.shape" and "never positive" in exc.value.reason

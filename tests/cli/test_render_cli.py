@@ -3,16 +3,16 @@
 from dataclasses import replace
 import json
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
 from heartcv.io import list_image_folder, read_image, read_inputs_csv, read_render_truth, read_rig
+from heartcv.tracker.io import read_model
 from tests.conftest import SAMPLES
 from tests.heartcv.render_scenes import scene_dict, write_truth_model
-from heartcv.tracker.io import read_model
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_render_calibration(runner, tmp_path, model_file):
 
 
 def test_render_sequence(runner, tmp_path, model_file):
-    scene = _scene(tmp_path, model_file, seed=3,
+    scene = _scene(tmp_path, model_file, seed=3, phantom={"fiducials": {"enabled": True}},
                    instrument={"enabled": True, "window_s": [0.09, 1.0], "enter_s": 0.05},
                    motion={"respiration": True}, motion_blur={"subsamples": 2, "exposure_fraction": 0.5})
     out = tmp_path / "seq"
@@ -80,6 +80,10 @@ def test_render_sequence(runner, tmp_path, model_file):
     mask = np.unpackbits(arrays["instrument_mask"], axis=-1)[..., :480].astype(bool)
     assert mask.shape == (4, 3, 270, 480) and not mask[:3].any() and mask[3].any()
     assert list(arrays["instrument_present"]) == [False, False, False, True]
+    per_frame = [k for k in arrays if k in ("times", "theta", "inputs", "translation", "vertex_positions",
+                                            "point_positions", "fiducial_positions", "instrument_tip",
+                                            "instrument_present", "instrument_mask")]
+    assert len(per_frame) == 10 and {arrays[k].shape[0] for k in per_frame} == {4}  # the rendered frames only
 
 
 def test_render_sequence_stiffness_cycle_override(runner, tmp_path, model_file):
@@ -130,6 +134,19 @@ def test_bad_scene_field_exits_2_naming_it(runner, tmp_path, model_file, patch, 
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("cmd, patch, message", [
+    ("sequence", {"phantom": {"apex_m": 0.001}}, "phantom.apex_m: the end must lie beyond the patch"),
+    ("calibration", {"calibration": {"views": 1, "offset_m": 1.0}}, "calibration: no pose found for view 0"),
+])
+def test_scene_the_core_refuses_exits_2_naming_file_and_field(runner, tmp_path, model_file, cmd, patch, message):
+    """A phantom that cannot be built, board poses no two cameras see: the core's InputError, with the scene file."""
+    scene = _scene(tmp_path, model_file, **patch)
+    result = runner.invoke(main, ["render", cmd, scene, "-o", str(tmp_path / "out"), "--workers", "1"])
+    assert result.exit_code == 2, result.output
+    assert f"Error: {scene}: {message}" in result.stderr and "internal error" not in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_missing_model_or_target_exits_2(runner, tmp_path, model_file):
     scene = _scene(tmp_path, tmp_path / "nope.yaml")
     result = runner.invoke(main, ["render", "sequence", scene, "-o", str(tmp_path / "out")])
@@ -139,11 +156,19 @@ def test_missing_model_or_target_exits_2(runner, tmp_path, model_file):
     assert result.exit_code == 2 and "calibration.target" in result.stderr
 
 
+def _listing(folder):
+    """{relative path: bytes} of every file under ``folder``."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
 def test_output_folder_is_replaced_only_when_complete(runner, tmp_path, model_file, monkeypatch):
+    """A render that fails half-way leaves the previous render's folder as it was and no temporary folder; a
+    complete one replaces it as a whole."""
     scene = _scene(tmp_path, model_file)
     out = tmp_path / "seq"
-    out.mkdir()
-    (out / "old.txt").write_text("previous run")
+    _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "2", "--json"]))
+    (out / "note.txt").write_text("added after the first render")
+    before = _listing(out)
 
     import heartcv.render.sequence as seq
 
@@ -156,12 +181,42 @@ def test_output_folder_is_replaced_only_when_complete(runner, tmp_path, model_fi
 
     monkeypatch.setattr(seq, "render_frame", failing)
     result = runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "3", "--workers", "1"])
-    assert result.exit_code != 0
+    assert result.exit_code == 1 and "internal error: RuntimeError" in result.stderr and "disk full" in result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml", "seq"]  # no temporary folder left
-    assert [p.name for p in out.iterdir()] == ["old.txt"]  # the previous folder is untouched
+    assert _listing(out) == before  # the previous folder is untouched
     monkeypatch.setattr(seq, "render_frame", real)
     _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "1", "--json"]))
-    assert not (out / "old.txt").exists() and (out / "truth.npz").is_file()
+    assert not (out / "note.txt").exists() and sorted(p.name for p in (out / "cam0").iterdir()) == ["000000.png"]
+
+
+@pytest.mark.parametrize("cmd", ["sequence", "calibration"])
+def test_summary_logged_at_info(runner, tmp_path, model_file, cmd):
+    scene = _scene(tmp_path, model_file, calibration={"views": 1})
+    args = ["--frames", "1"] if cmd == "sequence" else ["--views", "1"]
+    result = runner.invoke(main, ["render", cmd, scene, "-o", str(tmp_path / "out"), "--workers", "1", *args])
+    assert result.exit_code == 0, result.output
+    assert result.stdout == ""
+    assert "INFO heartcv.cli.render: wrote " in result.stderr and "WARNING" not in result.stderr
+    quiet = runner.invoke(main, ["-q", "render", cmd, scene, "-o", str(tmp_path / "out"), "--workers", "1", *args])
+    assert quiet.exit_code == 0 and "wrote" not in quiet.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["sequence", "--frames", "0"], "0 is not in the range 1<=x<=1000000"),
+    (["sequence", "--frames", "1000001"], "1000001 is not in the range 1<=x<=1000000"),
+    (["sequence", "--stiffness-cycle", "nan"], "'nan': a finite number expected"),
+    (["sequence", "--stiffness-cycle", "inf"], "'inf': a finite number expected"),
+    (["sequence", "--stiffness-cycle", "21"], "21 is not in the range [0, 20]"),
+    (["sequence", "--workers", "0"], "0 is not in the range 1<=x<=1024"),
+    (["calibration", "--workers", "1025"], "1025 is not in the range 1<=x<=1024"),
+    (["calibration", "--views", "1000001"], "1000001 is not in the range 1<=x<=1000000"),
+    (["calibration", "--seed", "-1"], "-1 is not in the range 0<=x<=9223372036854775807"),
+])
+def test_out_of_range_options_exit_2(runner, tmp_path, model_file, args, message):
+    scene = _scene(tmp_path, model_file)
+    result = runner.invoke(main, ["render", args[0], scene, "-o", str(tmp_path / "out"), *args[1:]])
+    assert result.exit_code == 2, result.output
+    assert message in result.stderr and not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("name", ["phantom", "myocardium"])

@@ -2,16 +2,13 @@
 metrics.json against the estimate files, the figures, mixed sequences, partial runs, render truths, bad input."""
 
 import json
-import logging
-from pathlib import Path
 
-import numpy as np
-import pytest
 from click.testing import CliRunner
+import numpy as np
 from PIL import Image
+import pytest
 
 from heartcv.cli.main import main
-from heartcv.cli.report import report
 from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
@@ -28,8 +25,7 @@ def _ok(cmd, args):
 
 
 def _report(args):
-    # `report` is invoked directly: cli/main.py registers it as `heartcv report`
-    return CliRunner().invoke(report, [str(a) for a in args])
+    return CliRunner().invoke(main, ["report"] + [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +48,8 @@ def test_end_to_end(run):
     js = json.loads(res.stdout)
     doc = json.loads((out / "metrics.json").read_text())
     assert js == dict(doc, output=str(out))
-    assert set(doc["files"]) == {p.name for p in out.iterdir()}
+    assert set(doc["files"]) | {"heartcv-manifest.json"} == {p.name for p in out.iterdir()}
+    assert json.loads((out / "heartcv-manifest.json").read_text())["producer"] == "heartcv report"
     assert not [p for p in run.iterdir() if p.name.startswith(".rep.")]  # no temporary folder left
     pngs = sorted(p.name for p in out.glob("*.png"))
     assert set(pngs) == set(doc["figures"]) == {"prediction_error.png", "parameter_E.png", "parameter_nu.png",
@@ -147,7 +144,7 @@ def test_mixed_sequences_refused(run):
     assert doc["estimators"]["kf:kf_short"]["completed_steps"] == 16
 
 
-def test_partial_run_and_render_truth(run, caplog):
+def test_partial_run_and_render_truth(run):
     from dataclasses import replace
 
     from heartcv.tracker.io import read_estimates, read_truth, write_estimates
@@ -164,11 +161,11 @@ def test_partial_run_and_render_truth(run, caplog):
     meta = json.dumps({"format": "heartcv.render_truth", "format_version": 1, "kind": "sequence"}).encode()
     np.savez(run / "render_truth.npz", times=truth["times"], theta=truth["theta"],
              point_positions=truth["positions"], meta_json=np.frombuffer(meta, np.uint8))
-    with caplog.at_level(logging.WARNING, logger="heartcv.cli.report"):
-        res = _report([run / "ge.partial.npz", run / "kf.npz", "--truth", run / "render_truth.npz", "-o",
-                       run / "rep_part", "--json"])
+    res = _report([run / "ge.partial.npz", run / "kf.npz", "--truth", run / "render_truth.npz", "-o",
+                   run / "rep_part", "--json"])
     assert res.exit_code == 0, res.output
-    assert "partial run (20 of 31 steps completed)" in caplog.text
+    assert (f"WARNING heartcv.cli.report: {run / 'ge.partial.npz'}: partial run (20 of 31 steps completed); only "
+            "the completed steps are used") in res.stderr
     doc = json.loads(res.stdout)
     g = doc["estimators"]["ge"]
     assert g["partial"] and g["completed_steps"] == 20 and g["steps"] == 31
@@ -213,7 +210,35 @@ def test_bad_input(run):
     other.mkdir()
     (other / "keep.txt").write_text("mine")
     res = _report([run / "kf.npz", "-o", other])
-    assert res.exit_code == 2 and "not a report" in res.output and (other / "keep.txt").read_text() == "mine"
+    assert res.exit_code == 2 and "holds no heartcv manifest: heartcv report replaces only a folder it wrote" \
+        in res.output
+    assert [p.name for p in other.iterdir()] == ["keep.txt"] and (other / "keep.txt").read_text() == "mine"
     res = _report([run / "kf.npz", "-o", run / "m.npz"])
     assert res.exit_code == 2 and "not a folder" in res.output
     assert not (run / "bad").exists()
+
+
+def test_render_truth_positions_into_the_patch_frame():
+    """tracker.metrics.truth_in_patch_frame: the truth's world positions through the inverse gauge into the rig
+    frame, then by the estimate's patch_from_rig, in the estimate's point order (NaN for a point the
+    measurement file lacks); pose_magnitude names the gauge's size."""
+    from scipy.spatial.transform import Rotation
+
+    from heartcv.tracker.metrics import pose_magnitude, truth_in_patch_frame
+
+    def pose(rotvec, t):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = Rotation.from_rotvec(rotvec).as_matrix(), t
+        return T
+
+    rng = np.random.default_rng(0)
+    rig = rng.normal(size=(4, 3, 3))                      # (K, P_meas, 3) in the rig frame
+    truth_from_rig = pose([0.0, 0.0, np.radians(2.0)], [1e-3, 0.0, 0.0])
+    patch_from_rig = pose([0.3, -0.2, 0.1], [0.01, 0.02, -0.3])
+    world = rig @ truth_from_rig[:3, :3].T + truth_from_rig[:3, 3]
+    got = truth_in_patch_frame(world, truth_from_rig, np.array([7, 8, 9]), np.array([9, 5, 7]), patch_from_rig)
+    expect = rig[:, [2, 0]] @ patch_from_rig[:3, :3].T + patch_from_rig[:3, 3]
+    np.testing.assert_allclose(got[:, [0, 2]], expect, rtol=0, atol=1e-14)
+    assert np.isnan(got[:, 1]).all()
+    angle, shift = pose_magnitude(truth_from_rig)
+    assert angle == pytest.approx(2.0, rel=1e-12) and shift == pytest.approx(1e-3, rel=1e-12)

@@ -4,10 +4,10 @@ from the estimators themselves, workers 1 vs 2, figures, bad input, divergence, 
 import json
 from pathlib import Path
 
-import numpy as np
-import pytest
 from click.testing import CliRunner
+import numpy as np
 from PIL import Image
+import pytest
 from scipy import stats
 
 from heartcv.cli.main import main
@@ -54,7 +54,7 @@ def test_json_matches_recomputation_from_npz(study):
         assert KEYS <= set(s) and s["diverged"] == 0
         theta = data[f"{name}_theta"]
         assert theta.shape == (3, 12, 5)
-        for j, p in zip(idx, ["E", "nu"]):
+        for j, p in zip(idx, ["E", "nu"], strict=True):
             assert s["rmse_initial"][p] == pytest.approx(np.sqrt(np.mean((theta0[:, j] - truth[j]) ** 2)), rel=1e-12)
             assert s["rmse_final"][p] == pytest.approx(np.sqrt(np.mean((theta[:, -1, j] - truth[j]) ** 2)), rel=1e-12)
             err = np.abs(theta[:, :, j] - truth[j])
@@ -172,6 +172,22 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, args, message):
     assert not (out / "summary.json").exists() and not out.exists()
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_prior_that_never_lands_in_the_box_exits_2_naming_the_model(tmp_path, workers):
+    """A box far narrower than the prior: no initial draw lands inside; with workers the main process finds it
+    before any worker starts."""
+    def narrow(d):
+        d["estimation"]["bounds"].update(E=[149.9e3, 150.1e3], nu=[0.4499, 0.4501])
+
+    model = _model(tmp_path, narrow)
+    out = tmp_path / "study"
+    res = _invoke(["simulate", model, "--runs", "2", "--steps", "3", "--workers", workers, "-o", str(out)])
+    assert res.exit_code == 2, res.output
+    assert f"Error: {model}: estimation.prior_std: none of 1000 draws of the initial parameters" in res.stderr
+    assert "lies inside the box estimation.bounds" in res.stderr
+    assert not out.exists()
+
+
 def test_output_that_is_a_file_exits_2(tmp_path):
     f = tmp_path / "file"
     f.write_text("x")
@@ -195,15 +211,14 @@ def test_all_runs_diverged_exits_1_and_writes_nothing(tmp_path, monkeypatch):
     assert not out.exists()
 
 
-def test_kf_only_study_without_estimated_parameters_replaces_an_old_study(tmp_path):
-    """A model estimating nothing runs the KF alone (NIS only); the folder of an older study keeps only
-    files that are complete and new, and files that are not the study's own stay."""
+def test_kf_only_study_without_estimated_parameters_replaces_an_old_study(study, tmp_path):
+    """A model estimating nothing runs the KF alone (NIS only); a folder that heartcv simulate wrote is replaced
+    as a whole (its figures of parameters no longer estimated, and anything added to it, are gone)."""
+    import shutil
+
     out = tmp_path / "study"
-    out.mkdir()
-    (out / "fig2_rho.png").write_bytes(b"old")
-    (out / "notes.txt").write_text("mine")
-    (out / "summary.json").write_text(json.dumps({"format": "heartcv.study",
-                                                   "files": ["fig2_rho.png", "nis.png", "summary.json"]}))
+    shutil.copytree(study[0], out)
+    (out / "notes.txt").write_text("added to the old study")
     res = _invoke(["simulate", _model(tmp_path, _no_estimates), "--runs", "2", "--steps", "4",
                    "--estimators", "kf", "--workers", "1", "-o", str(out), "--json"])
     assert res.exit_code == 0, res.output
@@ -211,10 +226,13 @@ def test_kf_only_study_without_estimated_parameters_replaces_an_old_study(tmp_pa
     assert js["estimated"] == [] and list(js["estimators"]) == ["kf"]
     kf = js["estimators"]["kf"]
     assert kf["rmse_initial"] == {} and kf["anees"] is None and kf["nis_per_dof_mean"] > 0
-    assert sorted(p.name for p in out.iterdir()) == ["nis.png", "notes.txt", "study.npz", "summary.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["heartcv-manifest.json", "nis.png", "study.npz",
+                                                     "summary.json"]
     assert json.loads((out / "summary.json").read_text())["runs"] == 2
+    assert json.loads((out / "heartcv-manifest.json").read_text())["producer"] == "heartcv simulate"
     data, _ = _load(out)
     assert data["phi0"].shape == (2, 0) and (data["theta0"] == data["theta_true"]).all()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folder left
 
 
 def test_si_scale_of_the_plot_axes():

@@ -2,11 +2,11 @@
 
 import json
 
+from click.testing import CliRunner
 import cv2
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
 from heartcv.io import read_image, read_target
@@ -61,9 +61,13 @@ def test_chessboard_target(runner, tmp_path):
 
 
 def test_log_line_without_json(runner, tmp_path):
+    """The summary is one INFO line (not a warning); -q hides it."""
     res = runner.invoke(main, CHARUCO_ARGS + ["-o", str(tmp_path / "T.yaml")])
     assert res.exit_code == 0 and res.stdout == ""
-    assert "wrote" in res.stderr and "298.45 dpi" in res.stderr and "141 px per 12 mm square" in res.stderr
+    assert res.stderr.startswith(f"INFO heartcv.cli.target: wrote {tmp_path / 'T.yaml'} (+ T.png, T.pdf)")
+    assert "298.45 dpi" in res.stderr and "141 px per 12 mm square" in res.stderr and "WARNING" not in res.stderr
+    res = runner.invoke(main, ["-q"] + CHARUCO_ARGS + ["-o", str(tmp_path / "T.yaml")])
+    assert res.exit_code == 0 and res.stderr == ""
 
 
 @pytest.mark.parametrize("args, message", [
@@ -80,9 +84,23 @@ def test_log_line_without_json(runner, tmp_path):
     (["--type", "chessboard", "--squares", "5x4", "--square-mm", "10"], "--inner-corners"),
     (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "10", "--legacy"], "ChArUco boards only"),
     (["--type", "chessboard", "--inner-corners", "5by4", "--square-mm", "10"], "COLSxROWS"),
-    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "-3"], "must be positive"),
+    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "-3"], "-3 is not in the range (0, 1000)"),
+    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "nan"], "'nan': a finite number expected"),
+    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "1000"], "1000 is not in the range (0, 1000)"),
+    (["--type", "charuco", "--squares", "5x4", "--square-mm", "10", "--marker-mm", "inf"],
+     "'inf': a finite number expected"),
+    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "10", "--margin-mm", "nan"],
+     "'nan': a finite number expected"),
+    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "10", "--dpi", "-inf"],
+     "'-inf': a finite number expected"),
+    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "10", "--dpi", "10001"],
+     "10001 is not in the range (0, 10000]"),
+    (["--type", "chessboard", "--inner-corners", "101x4", "--square-mm", "10"], "101x4: 1 to 100 each way"),
+    (["--type", "chessboard", "--inner-corners", "9x6", "--square-mm", "100", "--dpi", "1000"],
+     "image too large: 39370 x 27559 px"),
     (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "10", "--margin-mm", "-1"], "--margin-mm"),
-    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "10", "--dpi", "0"], "must be positive"),
+    (["--type", "chessboard", "--inner-corners", "5x4", "--square-mm", "10", "--dpi", "0"],
+     "0 is not in the range (0, 10000]"),
 ])
 def test_bad_values_exit_2_and_write_nothing(runner, tmp_path, args, message):
     res = runner.invoke(main, ["target"] + args + ["-o", str(tmp_path / "t.yaml")])

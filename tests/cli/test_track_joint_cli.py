@@ -3,19 +3,18 @@
 import json
 import os
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
-from tests.conftest import SAMPLES
-from heartcv.tracker.io import read_estimates, read_measurements, write_measurements
+from heartcv.tracker.io import read_estimates, read_measurements, read_model, write_measurements
 from heartcv.tracker.joint import run_joint
 from heartcv.tracker.measurements import MeasurementSet
 from heartcv.tracker.model import build_model
-from heartcv.tracker.io import read_model
 from heartcv.tracker.params import NAMES
+from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
 
@@ -43,8 +42,8 @@ def test_joint_track_json_and_file(tmp_path, meas_file, name):
     assert e.complete and e.estimator == name and s["steps"] == 31
     assert s["estimated"] == ["E", "nu"]
     # theta_final / theta_std_final are the file's last row, in physical units, keyed by name
-    assert s["theta_final"] == pytest.approx(dict(zip(NAMES, e.theta[-1])), rel=1e-12)
-    assert s["theta_std_final"] == pytest.approx(dict(zip(NAMES, e.theta_std[-1])), rel=1e-12)
+    assert s["theta_final"] == pytest.approx(dict(zip(NAMES, e.theta[-1], strict=True)), rel=1e-12)
+    assert s["theta_std_final"] == pytest.approx(dict(zip(NAMES, e.theta_std[-1], strict=True)), rel=1e-12)
     assert s["theta_std_final"]["rho"] == 0 and s["theta_std_final"]["E"] > 0
     assert s["truncation_events"] == int(e.truncation_events.sum())
     # the model file's prior is centred on the truth: E stays within a few per cent
@@ -55,11 +54,16 @@ def test_joint_track_json_and_file(tmp_path, meas_file, name):
     np.testing.assert_allclose(e.theta, lib.theta, rtol=1e-12)
 
 
-@pytest.mark.parametrize("nodes", ["4", "1", "2"])
-def test_even_or_small_node_count_exits_2(tmp_path, meas_file, nodes):
+@pytest.mark.parametrize("nodes, message", [
+    ("4", "Invalid value for '--nodes': D must be an odd integer >= 3 (shared centre node), got 4"),
+    ("1", "Invalid value for '--nodes': 1 is not in the range 3<=x<=51."),
+    ("2", "Invalid value for '--nodes': 2 is not in the range 3<=x<=51."),
+    ("53", "Invalid value for '--nodes': 53 is not in the range 3<=x<=51."),
+])
+def test_even_small_or_large_node_count_exits_2(tmp_path, meas_file, nodes, message):
     out = tmp_path / "x.npz"
     res = _run(["track", meas_file, "--model", PAPER, "--estimator", "ge", "--nodes", nodes, "-o", str(out)])
-    assert res.exit_code == 2 and "odd integer >= 3" in res.output
+    assert res.exit_code == 2 and message in res.output
     assert not out.exists()
 
 

@@ -162,3 +162,184 @@ def test_an_occluder_hides_views_until_it_leaves(occluded, occluder, scene):
     assert np.isfinite(r.uv[after, :, 1, 0]).all() and (r.views[after] == 3).all()
     # before it comes, nothing is missing
     assert (r.views[:min(OCCLUDED_FRAMES)] == 3).all()
+
+
+# -- the frame loop (heartcv.measure.measure_sequence) -----------------------------------------------------------------
+def _stream(frames, drop=()):
+    """(k, images, problems) per instant, as heartcv.io.FrameReader yields them; ``drop``: (k, c) left out."""
+    for k, images in enumerate(frames):
+        images = [None if (k, c) in drop else im for c, im in enumerate(images)]
+        yield k, images, [f"frame {k} camera {c}: dropped" for c in range(len(images)) if (k, c) in drop]
+
+
+def test_measure_sequence_is_the_measurer_loop(scene, frames, clean):
+    """The same result as feeding the Measurer by hand, one FrameStats per instant."""
+    from heartcv.measure import measure_sequence
+
+    ticks = iter(range(1000))
+    run = measure_sequence(_stream(frames), scene.cameras, MeasureOptions(max_points=40, min_distance_px=10),
+                           roi=scene.cap_mask(0, 0, 0.02), clock=lambda: float(next(ticks)))
+    r, _ = clean
+    for name in ("frames", "point_ids", "birth_frame", "positions", "covariances", "views"):
+        np.testing.assert_array_equal(getattr(run.result, name), getattr(r, name))
+    assert run.result.sigma_px == r.sigma_px
+    assert [f.frame for f in run.frames] == list(range(scene.n_frames)) and run.problems == () and run.skipped == []
+    assert [f.detected for f in run.frames] == [True] + [False] * (scene.n_frames - 1)
+    assert [f.seen for f in run.frames] == [len(r.point_ids)] * scene.n_frames
+    # the fake clock ticks once per call: set-up 1 tick; per instant 2 ticks waiting (before and after next()),
+    # 3 in all since the end of the previous one
+    assert run.setup_s == 1.0 and run.wait_s == scene.n_frames * 1.0
+    assert all(f.total_s == 3.0 and f.wait_s == 1.0 for f in run.frames)
+
+
+def test_measure_sequence_skips_instants_with_fewer_than_two_images(scene, frames):
+    from heartcv.measure import measure_sequence
+
+    drop = {(3, 0), (3, 2), (5, 1)}
+    run = measure_sequence(_stream(frames, drop), scene.cameras, MeasureOptions(max_points=40, min_distance_px=10),
+                           roi=scene.cap_mask(0, 0, 0.02))
+    assert run.skipped == [3]
+    assert run.problems == ((3, "frame 3 camera 0: dropped"), (3, "frame 3 camera 2: dropped"),
+                            (5, "frame 5 camera 1: dropped"))
+    r = run.result
+    assert not r.seen[3].any() and r.problems == ["frame 3: fewer than two readable images"]
+    assert r.seen[5].sum() == r.seen[4].sum() and (r.views[5][r.seen[5]] == 2).all()
+
+
+def test_measure_sequence_failures(scene, frames):
+    from heartcv.measure import MeasureFailed, measure_sequence
+    from heartcv.tracker.files import InputError
+
+    opts = MeasureOptions(max_points=40, min_distance_px=10)
+    with pytest.raises(InputError, match=r"^images: none of the reference camera's frames 0, 3, \.\.\. can be read"):
+        measure_sequence(_stream(frames), scene.cameras, opts, roi_frames=[])
+    black = np.zeros_like(frames[0][0])
+    with pytest.raises(MeasureFailed, match="region of interest: no textured surface"):
+        measure_sequence(_stream(frames), scene.cameras, opts, roi_frames=[black, black])
+    corner = np.zeros(black.shape, bool)
+    corner[:20, :20] = True                                     # the black background: nothing to track
+    with pytest.raises(MeasureFailed, match=r"no surface point could be tracked \(region of interest 400 px in "):
+        measure_sequence(_stream(frames), scene.cameras, opts, roi=corner)
+
+
+def test_reference_frames_reads_every_third_of_the_first_30():
+    from heartcv.measure import reference_frames
+
+    asked = []
+
+    def read(k):
+        asked.append(k)
+        return [None if k == 6 else np.full((2, 2), k, np.uint8), None], []
+
+    got = reference_frames(read, 20, 0)
+    assert asked == [0, 3, 6, 9, 12, 15, 18]
+    assert [int(im[0, 0]) for im in got] == [0, 3, 9, 12, 15, 18]
+    assert len(reference_frames(read, 100, 0)) == 9 and reference_frames(read, 100, 1) == []
+
+
+# -- frame times, inputs, truth, CSV (heartcv.measure_data) ------------------------------------------------------------
+def test_frame_times_and_units():
+    from heartcv.measure_data import frame_times, split_unit
+
+    np.testing.assert_array_equal(frame_times(3, timestamps=[0.0, 0.5, 0.75, 1.0]), [0.0, 0.5, 0.75])
+    np.testing.assert_array_equal(frame_times(3, fps=4.0, video_fps=25.0), [0.0, 0.25, 0.5])
+    np.testing.assert_array_equal(frame_times(3, video_fps=25.0), [0.0, 0.04, 0.08])
+    np.testing.assert_array_equal(frame_times(2), [0.0, 1 / 30])
+    assert split_unit("pressure_mmhg") == ("pressure", "Pa", 133.322387415)
+    assert split_unit("Pressure_KPa") == ("Pressure", "Pa", 1e3)
+    assert split_unit("shift_mm") == ("shift", "m", 1e-3)
+    assert split_unit("tension") == ("tension", "", 1.0)
+
+
+def test_inputs_at_frames_interpolates_in_si_units():
+    from heartcv.measure_data import inputs_at_frames
+
+    cols = {"time_s": np.array([0.0, 1.0, 2.0]), "pressure_mmhg": np.array([0.0, 10.0, 30.0]),
+            "x_mm": np.array([1.0, 1.0, 3.0])}
+    names, units, values = inputs_at_frames(cols, np.array([0.5, 1.5, 2.0]))
+    assert names == ("pressure", "x") and units == ("Pa", "m")
+    np.testing.assert_allclose(values, [[5 * 133.322387415, 1e-3], [20 * 133.322387415, 2e-3],
+                                        [30 * 133.322387415, 3e-3]], rtol=1e-15)
+    names, units, values = inputs_at_frames({"time_s": np.array([0.0, 1.0])}, np.array([0.0, 1.0]))
+    assert names == () and values.shape == (2, 0)
+
+
+@pytest.mark.parametrize("cols, message", [
+    ({"p_pa": np.zeros(3)}, "time_s: a 'time_s' column expected, got ['p_pa']"),
+    ({"time_s": np.array([0.0, 1.0, 1.0])}, "time_s: at least two finite, strictly increasing values expected"),
+    ({"time_s": np.array([0.0])}, "time_s: at least two finite, strictly increasing values expected"),
+    ({"time_s": np.array([0.0, 0.1])}, "time_s: the inputs cover 0..0.1 s, the frames 0..1 s"),
+    ({"time_s": np.array([0.0, 1.0]), "p_pa": np.array([1.0, np.nan])}, "column 'p_pa': non-finite values"),
+])
+def test_inputs_at_frames_refuses(cols, message):
+    from heartcv.measure_data import inputs_at_frames
+    from heartcv.tracker.files import InputError
+
+    with pytest.raises(InputError) as info:
+        inputs_at_frames(cols, np.array([0.0, 1.0]))
+    assert str(info.value) == message and info.value.path is None
+    assert str(info.value.in_file("in.csv")) == f"in.csv: {message}"
+
+
+def test_check_image_sizes_names_the_image_and_both_sizes():
+    from heartcv.camera import Camera
+    from heartcv.measure_data import check_image_sizes
+    from heartcv.tracker.files import InputError
+
+    cams = [Camera(f"c{i}", 4, 3, np.diag([1.0, 1.0, 1.0]), np.zeros(5), np.eye(4)) for i in range(2)]
+    good, wide = np.zeros((3, 4), np.uint8), np.zeros((3, 5), np.uint8)
+    frames = {0: [None, wide], 1: [good, good]}
+    with pytest.raises(InputError) as info:
+        check_image_sizes(cams, lambda k: (frames[k], []), 2, lambda c, k: f"cam{c}/{k}.png")
+    assert str(info.value) == ("cam1/0.png: image is 5x3 px, but the rig's camera c1 is 4x3: the rig does not "
+                               "belong to these images")
+    with pytest.raises(InputError, match=r"^images: none of the 2 images of camera c0 can be read$"):
+        check_image_sizes(cams, lambda k: ([None, good], []), 2, lambda c, k: "x")
+    # only each camera's first readable image is compared (isolated odd images are left out while measuring)
+    frames = {0: [None, good], 1: [good, wide]}
+    assert check_image_sizes(cams, lambda k: (frames[k], []), 2, lambda c, k: "x") is None
+
+
+def test_truth_for_frames():
+    from heartcv.measure_data import truth_for_frames
+    from heartcv.tracker.files import InputError
+
+    arrays = {"vertex_positions": np.zeros((5, 4, 3)), "instrument_mask": np.ones((5, 2, 3, 1), np.uint8),
+              "faces": np.zeros((1, 3), int)}
+    meta = {"kind": "sequence", "camera_names": ["a", "b"]}
+    out = truth_for_frames(arrays, meta, 3, ["a", "b"])
+    assert out["vertex_positions"].shape == (3, 4, 3) and out["instrument_mask"].shape == (3, 2, 3, 1)
+    assert out["faces"] is arrays["faces"] and arrays["vertex_positions"].shape == (5, 4, 3)
+    for bad_meta, count, names, message in [
+        ({"kind": "calibration"}, 3, ["a", "b"], "meta.kind: a sequence truth expected, got kind 'calibration'"),
+        (meta, 6, ["a", "b"], "vertex_positions: 5 frames of truth for 6 measured"),
+        (meta, 3, ["a", "c"], "meta.camera_names: cameras ['a', 'b'] differ from the rig's ['a', 'c']"),
+    ]:
+        with pytest.raises(InputError) as info:
+            truth_for_frames(arrays, bad_meta, count, names)
+        assert str(info.value) == message
+
+
+def test_measurement_csv_lines():
+    from heartcv.measure_data import measurement_csv_lines
+    from heartcv.tracker.measurements import MeasurementSet
+
+    pos = np.full((2, 2, 3), np.nan)
+    pos[0, 1] = [1.0, 2.0, 3.0]
+    pos[1, 0] = [0.5, 0.25, 0.125]
+    cov = np.full((2, 2, 3, 3), np.nan)
+    cov[0, 1] = cov[1, 0] = np.array([[4.0, 1.0, 1.0], [1.0, 5.0, 2.0], [1.0, 2.0, 6.0]])
+    mset = MeasurementSet(times=np.array([0.0, 0.5]), point_ids=np.array([7, 9]), positions=pos, covariances=cov,
+                          reference=np.array([[0.5, 0.25, 0.125], [1.0, 2.0, 3.0]]), inputs=np.zeros((2, 0)),
+                          views=np.array([[0, 2], [2, 0]]), reprojection_rms=np.array([[np.nan, 0.25], [0.5, np.nan]]))
+    uv = np.full((2, 2, 2, 2), np.nan)
+    uv[0, 1] = [[10.0, 11.0], [12.0, 13.0]]
+    uv[1, 0, 1] = [1.5, 2.5]
+    lines = measurement_csv_lines(mset, uv, ["L", "R"])
+    assert lines == [
+        "# heartcv measure: tracked points in the rig frame (docs/formats.md, measurement CSV)",
+        "frame,time_s,point_id,x_m,y_m,z_m,cxx_m2,cxy_m2,cxz_m2,cyy_m2,cyz_m2,czz_m2,views,reprojection_rms_px,"
+        "u_L_px,v_L_px,u_R_px,v_R_px",
+        "0,0.0,9,1.0,2.0,3.0,4.0,1.0,1.0,5.0,2.0,6.0,2,0.25,10.0,11.0,12.0,13.0",
+        "1,0.5,7,0.5,0.25,0.125,4.0,1.0,1.0,5.0,2.0,6.0,2,0.5,,,1.5,2.5",
+    ]

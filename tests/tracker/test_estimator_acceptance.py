@@ -12,13 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from heartcv.tracker import inputs as inp
 from heartcv.tracker.io import read_model
 from heartcv.tracker.joint import run_joint
 from heartcv.tracker.model import build_model
-from heartcv.tracker.simulate import simulate, to_measurements
+from heartcv.tracker.simulate import simulate, stiffness_schedule, to_measurements
 from heartcv.tracker.tracking import run_kalman
-
 from tests.conftest import SAMPLES
 
 pytestmark = pytest.mark.slow
@@ -54,23 +52,9 @@ def test_myocardium_E_converges_in_20_seeded_runs():
     assert rel_err.max() < 0.05, rel_err
 
 
-def _cycle(model, amplitude):
-    base = model.config.theta.copy()
-    ic = model.config.inputs
-
-    def theta(t):
-        h = inp.active_tension(np.atleast_1d(t), heart_rate_bpm=ic.heart_rate_bpm, t_max=1.0,
-                               rr_intervals=ic.rr_intervals)[0]
-        th = base.copy()
-        th[3] = base[3] * (1.0 + amplitude * h)
-        return th
-
-    return theta
-
-
 def test_stiffness_cycle_ge_beats_the_best_constant_kf():
     m = build_model(read_model(SAMPLES / "stiffness_cycle.yaml"))
-    sim = simulate(m, 6.0, np.random.default_rng(3), theta=_cycle(m, 1.0), substeps=4)
+    sim = simulate(m, 6.0, np.random.default_rng(3), theta=stiffness_schedule(m, 1.0, "active"), substeps=4)
     meas = to_measurements(sim)
     truth = sim.positions
 
@@ -105,4 +89,4 @@ def test_paper_simulation_fig2_claim():
     st = study.statistics()["ge"]
     names = list(study.estimated)
     ratio = st.rmse_final / st.rmse_initial
-    assert ratio[names.index("E")] <= 0.10 and ratio[names.index("rho")] <= 0.10, dict(zip(names, ratio))
+    assert ratio[names.index("E")] <= 0.10 and ratio[names.index("rho")] <= 0.10, dict(zip(names, ratio, strict=True))

@@ -6,14 +6,15 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from tests.conftest import load_yaml
 from heartcv.tracker.config import model_config_from_dict
+from heartcv.tracker.files import InputError
 from heartcv.tracker.fit import FitProblem, FitResult, _theta_of, fit, tracking_prior
 from heartcv.tracker.io import FileFormatError, read_parameters, write_parameters
 from heartcv.tracker.measurements import MeasurementSet
 from heartcv.tracker.model import build_model
 from heartcv.tracker.params import NAMES
 from heartcv.tracker.simulate import simulate, to_measurements
+from tests.conftest import load_yaml
 
 
 def _model(name, **changes):
@@ -222,16 +223,24 @@ def test_singular_jacobian_fails(paper_model):
 def test_bad_inputs_raise(paper_model):
     _, meas = _noise_only(paper_model, 0.5, 0)
     mm = _with_positions(meas, meas.positions * 1000, meas.covariances * 1e6, meas.reference * 1000)
-    with pytest.raises(ValueError, match="none of the 14 points"):
+    with pytest.raises(InputError, match="none of the 14 points") as exc:
         fit(paper_model, mm)
+    assert exc.value.field == "reference" and exc.value.path is None
     with pytest.raises(ValueError, match="at least 2 frames"):
         fit(paper_model, meas, frames=1)
     empty = _model("paper_patch.yaml", estimation__estimate=[])
-    with pytest.raises(ValueError, match="estimation.estimate"):
+    with pytest.raises(InputError, match="estimation.estimate: empty") as exc:
         fit(empty, meas)
+    assert exc.value.field == "estimation.estimate"
     act = _model("paper_patch.yaml", inputs__active_tension={"t_max": 1000.0})
-    with pytest.raises(ValueError, match="active_tension"):
+    with pytest.raises(InputError, match="active_tension") as exc:
         fit(act, meas)
+    assert exc.value.field == "inputs"
+    one = MeasurementSet(meas.times[:1], meas.point_ids, meas.positions[:1], meas.covariances[:1], meas.reference,
+                         meas.inputs[:1], meas.input_names, meas.input_units)
+    with pytest.raises(InputError, match="at least 2 frames, the file has 1") as exc:
+        fit(paper_model, one)
+    assert exc.value.field == "times"
 
 
 def test_frames_limits_the_window(paper_model):

@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from heartcv.tracker.files import InputError
 from heartcv.tracker.measurements import MeasurementSet
-from heartcv.tracker.registration import Registration, register, to_patch_frame
+from heartcv.tracker.registration import (
+    Registration,
+    apply_stored_registration,
+    register,
+    register_rig_measurements,
+    registration_to_dict,
+    to_patch_frame,
+)
 from heartcv.tracker.simulate import simulate
 from heartcv.tracker.tracking import locate_points, run_kalman
 
@@ -232,6 +240,51 @@ def test_to_patch_frame_transforms_exactly_and_round_trips():
         to_patch_frame(meas, Registration(T, 0.0, np.ones(3, bool), 3, True, ""))
 
 
+def test_the_stages_registration_round_trips_through_the_parameters_file_entry(paper_model, synthetic):
+    """register_rig_measurements (heartcv fit) -> registration_to_dict (the parameters file) ->
+    apply_stored_registration (heartcv track --params) gives the same patch-frame set."""
+    meas, _, reg = synthetic
+    patch, reg1 = register_rig_measurements(meas, paper_model)
+    assert reg1.converged and np.array_equal(reg1.patch_from_rig, reg.patch_from_rig)
+    entry = registration_to_dict(reg1, meas)
+    assert entry["points_on_patch"] == meas.point_ids[reg1.on_patch].tolist()
+    assert entry["patch_from_rig"] == reg1.patch_from_rig.tolist() and entry["rms_m"] == reg1.rms_m
+    again = apply_stored_registration(meas, entry, "p.yaml")
+    np.testing.assert_array_equal(again.point_ids, patch.point_ids)
+    np.testing.assert_array_equal(again.positions, patch.positions)
+    np.testing.assert_array_equal(again.reference, patch.reference)
+    assert again.meta["registration"]["message"] == "stored in p.yaml"
+
+
+def test_register_rig_measurements_reports_a_failed_registration(paper_model):
+    rng = np.random.default_rng(5)
+    K, P = 12, 80
+    cloud = rng.uniform(-0.05, 0.05, (P, 3)) + [0.0, 0.0, 0.5]
+    meas = MeasurementSet(np.arange(K) / 30, np.arange(P), cloud[None] + 1e-4 * rng.standard_normal((K, P, 3)),
+                          np.broadcast_to(1e-8 * np.eye(3), (K, P, 3, 3)), cloud, np.linspace(1e3, 1e4, K),
+                          ("pressure",), ("Pa",), "rig")
+    patch, reg = register_rig_measurements(meas, paper_model)
+    assert patch is None and not reg.converged and reg.message.startswith("registration failed")
+
+
+def test_a_stored_registration_that_does_not_fit_the_file_is_an_input_error(synthetic):
+    meas, _, reg = synthetic
+    entry = registration_to_dict(reg, meas)
+    with pytest.raises(InputError) as exc:
+        apply_stored_registration(meas, dict(entry, points_on_patch=[10_000, 10_001]))
+    assert exc.value.path is None and exc.value.field == "registration.points_on_patch"
+    assert str(exc.value.in_file("p.yaml")) == ("p.yaml: registration.points_on_patch: none of the registered "
+                                                "points is in the measurement file: the parameters were fitted "
+                                                "to another file")
+    with pytest.raises(InputError, match="not a rigid transform") as exc:
+        apply_stored_registration(meas, dict(entry, patch_from_rig=np.diag([2.0, 1, 1, 1]).tolist()))
+    assert exc.value.field == "registration.patch_from_rig"
+    off = np.eye(4)
+    off[:3, 3] = [10.0, 0.0, 0.0]  # every point 10 m away from the patch
+    with pytest.raises(InputError, match=f"none of the {meas.n_points} points lies on the patch"):
+        to_patch_frame(meas, Registration(off, 0.0, np.zeros(meas.n_points, bool), 0, True, ""))
+
+
 def test_points_nowhere_near_a_patch_do_not_converge(paper_model):
     rng = np.random.default_rng(5)
     K, P = 12, 80
@@ -251,8 +304,9 @@ def test_degenerate_inputs_raise(paper_model):
     cov = np.broadcast_to(1e-8 * np.eye(3), (K, 5, 3, 3))
     meas = MeasurementSet(np.arange(K) / 30, np.arange(5), pos, cov, pos[0], np.zeros(K), ("pressure",), ("Pa",),
                           "rig")
-    with pytest.raises(ValueError, match="at least 6 points seen in the first 10 frames needed, got 5"):
+    with pytest.raises(InputError, match="needs at least 6 points seen in the first 10 frames, got 5") as exc:
         register(meas, paper_model)
+    assert exc.value.field == "positions" and exc.value.path is None
     patch = MeasurementSet(meas.times, meas.point_ids, pos, cov, pos[0], np.zeros(K), ("pressure",), ("Pa",))
     with pytest.raises(ValueError, match="frame 'rig' expected"):
         register(patch, paper_model)
@@ -260,8 +314,9 @@ def test_degenerate_inputs_raise(paper_model):
 
 def test_bad_initial_and_frames_raise(paper_model, synthetic):
     meas = synthetic[0]
-    with pytest.raises(ValueError, match="rigid"):
+    with pytest.raises(InputError, match="not a rigid transform") as exc:
         register(meas, paper_model, initial=np.diag([2.0, 1, 1, 1]))
+    assert exc.value.field == "initial"
     with pytest.raises(ValueError, match="frames"):
         register(meas, paper_model, frames=0)
 

@@ -1,0 +1,220 @@
+"""The data around the measurement stage (``heartcv measure``, docs/cli.md §10): frame times, the known inputs
+at the frame times, the check that a rig fits a sequence's images, the render truth of the measured frames and
+the comparison with it, the run's summary and the long-form CSV rows.
+
+Pure functions on arrays and typed objects: the files are read and written by :mod:`heartcv.io` and the command
+line. Input that fails validation raises :class:`heartcv.tracker.files.InputError` with the field (column,
+camera, array) and no file; the caller attaches the file (:meth:`InputError.in_file`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .tracker.files import InputError
+
+__all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "inputs_at_frames", "check_image_sizes",
+           "truth_for_frames", "truth_statistics", "measurement_summary", "CSV_HEADER", "measurement_csv_lines"]
+
+# inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
+UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
+                 "_mm": ("m", 1e-3)}
+DEFAULT_FPS = 30.0     # frame rate without timestamps, --fps or a video's own rate
+
+CSV_HEADER = "heartcv measure: tracked points in the rig frame (docs/formats.md, measurement CSV)"
+
+
+# -- frame times and inputs -------------------------------------------------------------------------------------------
+def split_unit(column: str) -> tuple[str, str, float]:
+    """``(input name, SI unit, factor to SI)`` of an inputs.csv column: ``pressure_mmhg`` -> ``('pressure', 'Pa',
+    133.32...)``; a column without a known suffix keeps its name, with no unit and factor 1."""
+    for suffix, (unit, factor) in UNIT_SUFFIXES.items():
+        if column.lower().endswith(suffix):
+            return column[: -len(suffix)], unit, factor
+    return column, "", 1.0
+
+
+def frame_times(count: int, *, timestamps=None, fps: float | None = None, video_fps: float | None = None):
+    """Times (count,) of the frames in seconds: the first ``count`` timestamps when given, else ``k / rate`` with
+    the rate ``fps``, else ``video_fps``, else :data:`DEFAULT_FPS`."""
+    if timestamps is not None:
+        return np.asarray(timestamps, float)[:count]
+    rate = fps or video_fps or DEFAULT_FPS
+    return np.arange(count) / rate
+
+
+def inputs_at_frames(columns: dict, times) -> tuple[tuple, tuple, np.ndarray]:
+    """The known inputs at the frame times: ``(names, units, values (K, n))``, SI units (:func:`split_unit`),
+    interpolated linearly (first-order hold) from the table's ``time_s``.
+
+    Parameters
+    ----------
+    columns : dict of {name: ndarray}
+        The table's numeric columns (``heartcv.io.read_inputs_csv_columns``), ``time_s`` among them.
+    times : ndarray (K,)
+        Frame times, s.
+
+    Raises
+    ------
+    InputError
+        No ``time_s`` column, fewer than two or not strictly increasing times, times that do not cover the
+        frames (half a sample of slack at either end), a column with non-finite values. The field names the
+        column; no file.
+    """
+    times = np.asarray(times, float)
+    cols = dict(columns)
+    if "time_s" not in cols:
+        raise InputError(None, f"a 'time_s' column expected, got {list(cols)}", "time_s")
+    t = np.asarray(cols.pop("time_s"), float)
+    if t.size < 2 or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise InputError(None, "at least two finite, strictly increasing values expected", "time_s")
+    half = 0.5 * float(np.median(np.diff(t)))
+    if times[0] < t[0] - half or times[-1] > t[-1] + half:
+        raise InputError(None, f"the inputs cover {t[0]:.4g}..{t[-1]:.4g} s, the frames {times[0]:.4g}.."
+                               f"{times[-1]:.4g} s", "time_s")
+    names, units, vals = [], [], []
+    for name, v in cols.items():
+        v = np.asarray(v, float)
+        if not np.isfinite(v).all():
+            raise InputError(None, "non-finite values", f"column {name!r}")
+        base, unit, factor = split_unit(name)
+        names.append(base)
+        units.append(unit)
+        vals.append(np.interp(times, t, v) * factor)
+    return tuple(names), tuple(units), np.stack(vals, axis=1) if vals else np.zeros((times.size, 0))
+
+
+def check_image_sizes(cameras, read, count: int, locate) -> None:
+    """Check that every camera's first readable image has the rig's image size for that camera.
+
+    Parameters
+    ----------
+    cameras : sequence of Camera
+    read : callable
+        ``read(k) -> (images, problems)`` of instant ``k`` without a size check (``heartcv.io.FrameReader``).
+    count : int
+        Instants to look through for a readable image.
+    locate : callable
+        ``locate(c, k)`` -> the file of camera ``c``'s image of instant ``k`` (named in the error).
+
+    Raises
+    ------
+    InputError
+        Naming the image and both sizes (the rig does not belong to these images), or the camera none of whose
+        ``count`` images can be read.
+    """
+    pending = list(range(len(cameras)))
+    for k in range(count):
+        if not pending:
+            return
+        images, _ = read(k)
+        for c in [c for c in pending if images[c] is not None]:
+            pending.remove(c)
+            cam, (h, w) = cameras[c], images[c].shape[:2]
+            if (w, h) != tuple(cam.size):
+                raise InputError(locate(c, k), f"image is {w}x{h} px, but the rig's camera {cam.name} is "
+                                               f"{cam.width}x{cam.height}: the rig does not belong to these images")
+    if pending:
+        raise InputError(None, f"none of the {count} images of camera {cameras[pending[0]].name} can be read",
+                         "images")
+
+
+# -- truth ------------------------------------------------------------------------------------------------------------
+def truth_for_frames(arrays: dict, meta: dict, count: int, names) -> dict:
+    """The render truth (``heartcv.io.read_render_truth``) of the first ``count`` frames of a sequence seen by the
+    cameras ``names``.
+
+    Raises
+    ------
+    InputError
+        Not a sequence's truth, fewer frames than measured, other cameras (field ``meta.kind``,
+        ``vertex_positions`` or ``meta.camera_names``; no file).
+    """
+    if meta.get("kind") != "sequence":
+        raise InputError(None, f"a sequence truth expected, got kind {meta.get('kind')!r}", "meta.kind")
+    if "vertex_positions" not in arrays:
+        raise InputError(None, "missing: a sequence truth holds the vertex positions per frame", "vertex_positions")
+    n = arrays["vertex_positions"].shape[0]
+    if n < count:
+        raise InputError(None, f"{n} frames of truth for {count} measured", "vertex_positions")
+    if list(meta.get("camera_names", names)) != list(names):
+        raise InputError(None, f"cameras {meta.get('camera_names')} differ from the rig's {list(names)}",
+                         "meta.camera_names")
+    out = dict(arrays)
+    for key in ("vertex_positions", "instrument_mask"):
+        if key in out:
+            out[key] = out[key][:count]
+    return out
+
+
+def truth_statistics(res, truth: dict, ref: int) -> dict:
+    """Errors of a measurement (:class:`heartcv.measure.MeasureResult`) against the render truth
+    (:func:`truth_for_frames`): the ``error_*``, ``aligned_error_*``, ``displacement_*`` and gauge keys of the
+    summary (docs/cli.md §10; :func:`heartcv.evaluate.truth_errors`)."""
+    from .evaluate import displacement_consistency, occluded_observations, truth_errors
+
+    P = res.point_ids.size
+    uv_ref = np.array([res.uv[res.birth_frame[p], p, ref] for p in range(P)], float).reshape(P, 2)
+    te = truth_errors(res.positions, uv_ref, res.birth_frame, truth, ref_camera=ref)
+    out = {"error_rms_m": te.rms_m, "error_p99_m": te.p99_m, "error_mean_m": te.mean_m, "error_max_m": te.max_m,
+           "error_observations": te.n, "tracks_off_surface": int((te.material_face < 0).sum()),
+           "occluded_observations": occluded_observations(res.uv, truth)}
+    if te.aligned is not None:
+        R = te.truth_from_rig[:3, :3]
+        dc = displacement_consistency(res.positions, res.covariances, te.true_positions, res.birth_frame, R)
+        out.update({"displacement_error_rms_m": dc["rms_m"], "displacement_nees_per_dof": dc["nees_per_dof"],
+                    "aligned_error_rms_m": te.aligned.rms_m, "aligned_error_p99_m": te.aligned.p99_m,
+                    "aligned_error_mean_m": te.aligned.mean_m, "aligned_error_max_m": te.aligned.max_m,
+                    "rig_gauge_rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))),
+                    "rig_gauge_translation_m": float(np.linalg.norm(te.truth_from_rig[:3, 3]))})
+    return out
+
+
+# -- summary and CSV --------------------------------------------------------------------------------------------------
+def measurement_summary(res, times, wall_s: float, decode_s: float) -> dict:
+    """The numbers of a run's summary (docs/cli.md §10, ``--json``): frames, tracks, points per frame, reprojection
+    RMS, sigma, views, rate and timings, region of interest."""
+    seen = res.seen
+    per_frame = seen.sum(axis=1)
+    r = res.reprojection_rms[seen]
+    n = int(len(times))
+    return {"frames": n, "tracks": int(res.point_ids.size), "points_mean": float(per_frame.mean()),
+            "points_min": int(per_frame.min()), "points_max": int(per_frame.max()),
+            "reprojection_rms_px": float(np.sqrt(np.mean(r ** 2))) if r.size else None,
+            "sigma_px": res.sigma_px, "sigma_estimated": res.sigma_estimated,
+            "views_mean": float(res.views[seen].mean()) if seen.any() else 0.0,
+            "frames_per_s": n / wall_s if wall_s > 0 else None, "wall_s": wall_s,
+            "timings_s": {"decode": decode_s, **res.timings}, "roi_px": int(res.roi.sum())}
+
+
+def _num(v) -> str:
+    return repr(float(v))
+
+
+def measurement_csv_lines(mset, uv, names) -> list[str]:
+    """The long-form CSV of a measurement (docs/cli.md §10, ``--csv``): a comment line, the header row, then one
+    row per (frame, seen point): frame, time, id, position, covariance (6 entries), views, reprojection RMS and the
+    pixel position in each camera (empty where that view was not used).
+
+    Parameters
+    ----------
+    mset : heartcv.tracker.measurements.MeasurementSet
+    uv : ndarray (K, P, C, 2)
+        Pixel positions of the views used (NaN: not used).
+    names : sequence of str
+        Camera names.
+    """
+    cols = ["frame", "time_s", "point_id", "x_m", "y_m", "z_m", "cxx_m2", "cxy_m2", "cxz_m2", "cyy_m2",
+            "cyz_m2", "czz_m2", "views", "reprojection_rms_px"]
+    cols += [f"{axis}_{n}_px" for n in names for axis in ("u", "v")]
+    lines = [f"# {CSV_HEADER}", ",".join(cols)]
+    ks, ps = np.nonzero(mset.seen)
+    X = mset.positions[ks, ps]
+    cov = mset.covariances[ks, ps][:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
+    pix = np.asarray(uv)[ks, ps].reshape(len(ks), -1)
+    for i, (k, p) in enumerate(zip(ks, ps, strict=True)):
+        row = [str(k), _num(mset.times[k]), str(int(mset.point_ids[p])), *map(_num, X[i]), *map(_num, cov[i]),
+               str(int(mset.views[k, p])), _num(mset.reprojection_rms[k, p])]
+        row += ["" if not np.isfinite(v) else _num(v) for v in pix[i]]
+        lines.append(",".join(row))
+    return lines

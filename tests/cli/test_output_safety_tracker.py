@@ -1,0 +1,300 @@
+"""Output safety of the model and estimator stages (model simulate, track, fit, report, simulate): no stage ever
+overwrites or deletes an input or a file or folder it did not write; unwritable outputs, NaN / infinite and
+out-of-range options exit 2 before any work; a successful run logs its summary at INFO."""
+
+from pathlib import Path
+import shutil
+
+from click.testing import CliRunner
+import pytest
+
+from heartcv.cli.main import main
+from heartcv.tracker.io import read_measurements, write_measurements
+from heartcv.tracker.measurements import MeasurementSet
+from tests.conftest import SAMPLES
+
+PAPER = SAMPLES / "paper_patch.yaml"
+
+
+def _run(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def _ok(*args):
+    res = _run(*args)
+    assert res.exit_code == 0, res.output
+    return res
+
+
+def _snapshot(folder: Path) -> dict:
+    """{relative path: bytes} of every file under ``folder``."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """A model file, its measurements and truth, a KF estimate and a fit's parameters file."""
+    d = tmp_path_factory.mktemp("safety")
+    shutil.copy(PAPER, d / "model.yaml")
+    _ok("model", "simulate", d / "model.yaml", "--duration", "1", "--seed", "1", "-o", d / "m.npz",
+        "--truth", d / "t.npz")
+    _ok("track", d / "m.npz", "--model", d / "model.yaml", "-o", d / "kf.npz")
+    _ok("fit", d / "m.npz", "--model", d / "model.yaml", "--starts", "1", "-o", d / "p.yaml")
+    return d
+
+
+@pytest.fixture
+def here(work, tmp_path):
+    """A private copy of ``work`` (tests may try to damage it)."""
+    for p in work.iterdir():
+        shutil.copy(p, tmp_path / p.name)
+    return tmp_path
+
+
+def _refused(res, *paths):
+    """Exit 2, one line naming every path, no traceback."""
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output and "internal error" not in res.output
+    for p in paths:
+        assert str(p) in res.stderr, (p, res.stderr)
+
+
+# -- an output that is an input ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("args, label", [
+    (["model", "simulate", "{model}", "--duration", "1", "-o", "{model}"], "MODEL_FILE"),
+    (["model", "simulate", "{model}", "--duration", "1", "-o", "{here}/x.npz", "--truth", "{model}"], "MODEL_FILE"),
+    (["track", "{meas}", "--model", "{model}", "-o", "{meas}"], "MEASUREMENTS"),
+    (["track", "{meas}", "--model", "{model}", "-o", "{model}"], "--model"),
+    (["track", "{meas}", "--model", "{model}", "--params", "{params}", "-o", "{params}"], "--params"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{model}"], "--model"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{params}", "--starts", "1"], None),  # a re-run: allowed
+])
+def test_an_output_equal_to_an_input_is_refused_and_the_input_kept(here, args, label):
+    subs = {"{model}": here / "model.yaml", "{meas}": here / "m.npz", "{params}": here / "p.yaml",
+            "{here}": here}
+    argv = [str(subs.get(a, a)).replace("{here}", str(here)) for a in args]
+    before = _snapshot(here)
+    res = _run(*argv)
+    if label is None:
+        assert res.exit_code == 0, res.output
+        return
+    out = argv[argv.index("--truth") + 1] if "--truth" in argv else argv[argv.index("-o") + 1]
+    _refused(res, out)
+    assert f"is the input {label} ({out})" in res.stderr
+    assert _snapshot(here) == before
+
+
+def test_model_simulate_output_and_truth_are_one_file(here):
+    same = here / "both.npz"
+    res = _run("model", "simulate", here / "model.yaml", "--duration", "1", "-o", same, "--truth", same)
+    _refused(res, same)
+    assert f"-o/--output and --truth name the same file ({same})" in res.stderr
+    assert not same.exists()
+    # an earlier file of that name (heartcv's own) stays as it was
+    shutil.copy(here / "m.npz", same)
+    before = same.read_bytes()
+    _refused(_run("model", "simulate", here / "model.yaml", "--duration", "1", "-o", same, "--truth",
+                  here / "." / "both.npz"), same)
+    assert same.read_bytes() == before
+
+
+def _absurd(meas_path: Path, out: Path) -> None:
+    """The measurements with absurd (finite) positions from frame 5 on: the GE diverges at step 5."""
+    m = read_measurements(meas_path)
+    pos = m.positions.copy()
+    pos[5:] += 1e10
+    write_measurements(out, MeasurementSet(m.times, m.point_ids, pos, m.covariances, m.reference, m.inputs,
+                                           m.input_names, m.input_units))
+
+
+def test_track_partial_file_never_replaces_an_input(here):
+    """A diverging run writes its steps to OUT.partial.npz: when that is the input, the run is refused first."""
+    inp = here / "ge.partial.npz"
+    _absurd(here / "m.npz", inp)
+    before = inp.read_bytes()
+    res = _run("track", inp, "--model", here / "model.yaml", "--estimator", "ge", "-o", here / "ge.npz")
+    _refused(res, here / "ge.partial.npz")
+    assert f"is the input MEASUREMENTS ({inp})" in res.stderr
+    assert inp.read_bytes() == before and not (here / "ge.npz").exists()
+
+
+def test_track_partial_file_replaces_only_a_heartcv_file(here):
+    (here / "ge.partial.npz").write_text("my notes")
+    _absurd(here / "m.npz", here / "absurd.npz")
+    res = _run("track", here / "absurd.npz", "--model", here / "model.yaml", "--estimator", "ge", "-o",
+               here / "ge.npz")
+    _refused(res, here / "ge.partial.npz")
+    assert "exists and was not written by heartcv; not replaced" in res.stderr
+    assert (here / "ge.partial.npz").read_text() == "my notes"
+
+
+@pytest.mark.parametrize("stage", ["model simulate", "track", "fit"])
+def test_an_output_file_heartcv_did_not_write_is_kept(here, stage):
+    mine = here / ("mine.yaml" if stage == "fit" else "mine.npz")
+    mine.write_text("my own notes")
+    args = {"model simulate": ["model", "simulate", here / "model.yaml", "--duration", "1"],
+            "track": ["track", here / "m.npz", "--model", here / "model.yaml"],
+            "fit": ["fit", here / "m.npz", "--model", here / "model.yaml", "--starts", "1"]}[stage]
+    res = _run(*args, "-o", mine)
+    _refused(res, mine)
+    assert "exists and was not written by heartcv; not replaced (remove it or choose another path)" in res.stderr
+    assert mine.read_text() == "my own notes"
+
+
+# -- output folders: report and simulate -------------------------------------------------------------------------
+def test_report_into_a_report_folder_holding_an_input_is_refused(here):
+    """The old report replaced any folder holding metrics.json, with the estimate file the user kept in it."""
+    rep = here / "rep"
+    _ok("report", here / "kf.npz", "-o", rep)
+    shutil.copy(here / "kf.npz", rep / "kf.npz")
+    before = _snapshot(rep)
+    res = _run("report", rep / "kf.npz", "-o", rep)
+    _refused(res, rep, rep / "kf.npz")
+    assert f"contains the input ESTIMATES ({rep / 'kf.npz'}); the stage would replace it" in res.stderr
+    assert _snapshot(rep) == before
+
+
+@pytest.mark.parametrize("option", ["--truth", "--measurements"])
+def test_report_folder_containing_the_truth_or_measurements_is_refused(here, option):
+    rep = here / "rep"
+    _ok("report", here / "kf.npz", "-o", rep)
+    name = "t.npz" if option == "--truth" else "m.npz"
+    shutil.copy(here / name, rep / name)
+    before = _snapshot(rep)
+    res = _run("report", here / "kf.npz", option, rep / name, "-o", rep)
+    _refused(res, rep, rep / name)
+    assert f"contains the input {option}" in res.stderr
+    assert _snapshot(rep) == before
+
+
+def test_report_replaces_only_a_folder_a_report_wrote(here):
+    """A hand-made folder that happens to hold metrics.json is not a report folder (no manifest): kept."""
+    mine = here / "mine"
+    mine.mkdir()
+    (mine / "metrics.json").write_text("{}")
+    (mine / "notes.md").write_text("mine")
+    before = _snapshot(mine)
+    res = _run("report", here / "kf.npz", "-o", mine)
+    _refused(res, mine)
+    assert "exists and holds no heartcv manifest: heartcv report replaces only a folder it wrote itself" \
+        in res.stderr
+    assert _snapshot(mine) == before
+    # a study folder is not a report folder either
+    study = here / "study"
+    _ok("simulate", here / "model.yaml", "--runs", "2", "--steps", "3", "--estimators", "kf", "--workers", "1",
+        "-o", study)
+    before = _snapshot(study)
+    res = _run("report", here / "kf.npz", "-o", study)
+    _refused(res, study)
+    assert "exists and was written by 'heartcv simulate'" in res.stderr
+    assert _snapshot(study) == before
+
+
+def test_simulate_into_a_folder_it_did_not_write_is_refused(here):
+    """The old study stage wrote its files into any folder, replacing a nis.png or study.npz kept there."""
+    folder = here / "results"
+    folder.mkdir()
+    (folder / "nis.png").write_bytes(b"my figure")
+    (folder / "summary.json").write_text('{"format": "heartcv.study", "files": ["nis.png"]}')
+    before = _snapshot(folder)
+    res = _run("simulate", here / "model.yaml", "--runs", "2", "--steps", "3", "--workers", "1", "-o", folder)
+    _refused(res, folder)
+    assert "holds no heartcv manifest: heartcv simulate replaces only a folder it wrote itself" in res.stderr
+    assert _snapshot(folder) == before
+
+
+def test_simulate_into_the_folder_of_its_model_file_is_refused(here):
+    before = _snapshot(here)
+    res = _run("simulate", here / "model.yaml", "--runs", "2", "--steps", "3", "-o", here)
+    _refused(res, here, here / "model.yaml")
+    assert f"contains the input MODEL_FILE ({here / 'model.yaml'})" in res.stderr
+    assert _snapshot(here) == before
+
+
+# -- unwritable outputs ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("stage", ["model simulate", "track", "fit", "report", "simulate"])
+def test_output_below_a_file_exits_2_naming_it(here, stage):
+    out = here / "m.npz" / ("p.yaml" if stage == "fit" else "out")
+    args = {"model simulate": ["model", "simulate", here / "model.yaml", "--duration", "1"],
+            "track": ["track", here / "m.npz", "--model", here / "model.yaml"],
+            "fit": ["fit", here / "m.npz", "--model", here / "model.yaml"],
+            "report": ["report", here / "kf.npz"],
+            "simulate": ["simulate", here / "model.yaml", "--runs", "2", "--steps", "3"]}[stage]
+    before = _snapshot(here)
+    res = _run(*args, "-o", out)
+    _refused(res, out)
+    assert f"-o/--output: {here / 'm.npz'} is not a folder" in res.stderr
+    assert _snapshot(here) == before
+
+
+# -- option values: NaN, infinities, ranges ----------------------------------------------------------------------
+SIM = ["model", "simulate", "{model}", "-o", "{out}"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (SIM + ["--duration", "nan"], "Invalid value for '--duration': 'nan': a finite number expected"),
+    (SIM + ["--duration", "inf"], "Invalid value for '--duration': 'inf': a finite number expected"),
+    (SIM + ["--duration", "0"], "Invalid value for '--duration': 0 is not in the range (0, 86400]"),
+    (SIM + ["--duration", "86401"], "Invalid value for '--duration': 86401 is not in the range (0, 86400]"),
+    (SIM + ["--duration", "86400"], "--duration 86400 s at the model's 30 Hz gives 2592001 frames of 1 substeps; "
+                                    "at most 1000000 frames and 1000000 integration steps"),
+    (SIM + ["--duration", "3600", "--substeps", "10"], "gives 108001 frames of 10 substeps"),
+    (SIM + ["--duration", "1", "--missing", "nan"], "Invalid value for '--missing': 'nan': a finite number expected"),
+    (SIM + ["--duration", "1", "--missing", "1.5"], "Invalid value for '--missing': 1.5 is not in the range [0, 1]"),
+    (SIM + ["--duration", "1", "--missing", "-0.1"], "Invalid value for '--missing': -0.1 is not in the range"),
+    (SIM + ["--duration", "1", "--substeps", "0"], "Invalid value for '--substeps': 0 is not in the range 1<=x<=1000"),
+    (SIM + ["--duration", "1", "--substeps", "1001"], "1001 is not in the range 1<=x<=1000"),
+    (SIM + ["--duration", "1", "--stiffness-cycle", "inf"], "'--stiffness-cycle': 'inf': a finite number expected"),
+    (SIM + ["--duration", "1", "--stiffness-cycle", "21"], "'--stiffness-cycle': 21 is not in the range [0, 20]"),
+    (SIM + ["--duration", "1", "--seed", "-1"], "Invalid value for '--seed': -1 is not in the range"),
+    (["simulate", "{model}", "-o", "{out}", "--runs", "10001"], "10001 is not in the range 2<=x<=10000"),
+    (["simulate", "{model}", "-o", "{out}", "--steps", "100001"], "100001 is not in the range 2<=x<=100000"),
+    (["simulate", "{model}", "-o", "{out}", "--runs", "1000", "--steps", "100000"],
+     "--runs 1000 x --steps 100000: at most 10000000 run-steps in one study"),
+    (["simulate", "{model}", "-o", "{out}", "--workers", "0"], "0 is not in the range 1<=x<=1024"),
+    (["simulate", "{model}", "-o", "{out}", "--workers", "1025"], "1025 is not in the range 1<=x<=1024"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{out}.yaml", "--frames", "1"], "1 is not in the range "
+                                                                                  "2<=x<=1000000"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{out}.yaml", "--frames", "1000001"], "1000001 is not in the"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{out}.yaml", "--starts", "0"], "0 is not in the range "
+                                                                                  "1<=x<=1000"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{out}.yaml", "--starts", "1001"], "1001 is not in the range"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{out}.yaml", "--max-evaluations", "0"], "0 is not in the range "
+                                                                                           "1<=x<=1000000"),
+    (["fit", "{meas}", "--model", "{model}", "-o", "{out}.yaml", "--max-evaluations", "1e9"], "'1e9' is not a "
+                                                                                             "valid integer"),
+    (["report", "{kf}", "-o", "{out}", "--dpi", "71"], "71 is not in the range 72<=x<=600"),
+    (["report", "{kf}", "-o", "{out}", "--dpi", "601"], "601 is not in the range 72<=x<=600"),
+])
+def test_bad_option_values_exit_2_before_any_work(here, args, message):
+    subs = {"{model}": here / "model.yaml", "{meas}": here / "m.npz", "{kf}": here / "kf.npz"}
+    out = here / "out"
+    argv = [str(subs.get(a, a)).replace("{out}", str(out)) for a in args]
+    before = _snapshot(here)
+    res = _run(*argv)
+    assert res.exit_code == 2, res.output
+    assert message in res.stderr and res.stdout == ""
+    assert _snapshot(here) == before
+
+
+# -- the summary of a successful run is INFO ---------------------------------------------------------------------
+@pytest.mark.parametrize("stage, line", [
+    ("model simulate", "INFO heartcv.cli.model: wrote {out} (31 frames, 14 points)"),
+    ("track", "INFO heartcv.cli.track: wrote {out}: 31 steps, prediction RMSE "),
+    ("fit", "INFO heartcv.cli.fit: wrote {out}: E = "),
+    ("report", "INFO heartcv.cli.report: wrote {out} (3 figures); kf: prediction error "),
+    ("simulate", "INFO heartcv.cli.simulate: 2 runs x 3 steps, seed 0, estimated E, nu -> {out}"),
+])
+def test_a_successful_run_logs_its_summary_at_info(here, stage, line):
+    out = here / ("o.yaml" if stage == "fit" else "o.npz" if stage in ("model simulate", "track") else "o")
+    args = {"model simulate": ["model", "simulate", here / "model.yaml", "--duration", "1"],
+            "track": ["track", here / "m.npz", "--model", here / "model.yaml"],
+            "fit": ["fit", here / "m.npz", "--model", here / "model.yaml", "--starts", "1"],
+            "report": ["report", here / "kf.npz"],
+            "simulate": ["simulate", here / "model.yaml", "--runs", "2", "--steps", "3", "--estimators", "kf",
+                         "--workers", "1"]}[stage]
+    res = _ok(*args, "-o", out)
+    assert line.format(out=out) in res.stderr
+    assert "WARNING" not in res.stderr and res.stdout == ""
+    quiet = _ok("-q", *args, "-o", out)  # -q: warnings only, and a re-run replaces the stage's own output
+    assert quiet.stderr == "" and quiet.stdout == ""
