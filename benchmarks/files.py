@@ -22,7 +22,8 @@ from ._harness import fmt_time, measure, table
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _alias_bomb() -> str:
+def alias_bomb() -> str:
+    """A YAML alias bomb of about 500 bytes: 9 levels of 9 aliases (3.9e8 nodes once expanded)."""
     lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
     for i in range(1, 9):
         prev, cur = chr(96 + i), chr(97 + i)
@@ -30,11 +31,23 @@ def _alias_bomb() -> str:
     return "\n".join(lines) + "\n"
 
 
-def _files(folder: Path) -> dict:
-    from heartcv.tracker.measurements import MeasurementSet
-    from heartcv.tracker.io import write_measurements
+def huge_claim_copy(src, dst, member: str = "times", nbytes: int = 1 << 30):
+    """Copy the ``.npz`` file ``src`` to ``dst`` with ``member``'s ``.npy`` header claiming an array of ``nbytes``
+    (float64) followed by 64 bytes of data: a file of a few kB that a naive reader allocates 1 GiB for."""
+    b = io.BytesIO()
+    np.lib.format.write_array_header_1_0(b, {"descr": "<f8", "fortran_order": False, "shape": (nbytes // 8,)})
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            zout.writestr(info.filename, b.getvalue() + b"\0" * 64 if info.filename == f"{member}.npy"
+                          else zin.read(info))
+    return Path(dst)
 
-    (folder / "bomb.yaml").write_text(_alias_bomb())
+
+def _files(folder: Path) -> dict:
+    from heartcv.tracker.io import write_measurements
+    from heartcv.tracker.measurements import MeasurementSet
+
+    (folder / "bomb.yaml").write_text(alias_bomb())
     (folder / "deep.yaml").write_text("geometry: " + "[" * 100 + "]" * 100 + "\n")
     K, P = 240, 300
     rng = np.random.default_rng(0)
@@ -42,12 +55,7 @@ def _files(folder: Path) -> dict:
     m = MeasurementSet(np.arange(K) / 60.0, np.arange(P), rng.normal(size=(K, P, 3)) * 1e-3, cov,
                        rng.normal(size=(P, 3)) * 1e-3, np.zeros((K, 1)), ("lv_pressure",), ("Pa",), "patch")
     write_measurements(folder / "meas.npz", m)
-    b = io.BytesIO()
-    np.lib.format.write_array_header_1_0(b, {"descr": "<f8", "fortran_order": False, "shape": (1 << 27,)})
-    with zipfile.ZipFile(folder / "meas.npz") as zin, zipfile.ZipFile(folder / "big.npz", "w") as zout:
-        for info in zin.infolist():
-            zout.writestr(info.filename, b.getvalue() + b"\0" * 64 if info.filename == "times.npy"
-                          else zin.read(info))
+    huge_claim_copy(folder / "meas.npz", folder / "big.npz")
     return {k: folder / n for k, n in (("bomb", "bomb.yaml"), ("deep", "deep.yaml"), ("meas", "meas.npz"),
                                        ("big", "big.npz"))}
 

@@ -93,13 +93,16 @@ def main(ctx, verbose, quiet):
     """heartcv: physics-based tracking of beating-heart surface motion.
 
     Available: `target`, `render`, `calibrate`, `measure`, `model info`, `model simulate`, `track` (kf, ge,
-    ukf, ekf), `fit`, `report`, `simulate` (Monte-Carlo study of the estimators). Logs go to stderr; --json summaries to stdout.
+    ukf, ekf), `fit`, `report`, `simulate` (Monte-Carlo study of the estimators). Logs go to stderr; --json
+    summaries to stdout.
     """
     verbosity = verbose - quiet
     # INFO by default: a stage's summary line is INFO, WARNING is kept for what the user should act on; -q
     # leaves warnings only, -qq errors only, -v adds debug output.
     logging.basicConfig(level=min(40, max(10, 20 - 10 * verbosity)), format="%(levelname)s %(name)s: %(message)s",
                         force=True)
+    # scikit-fem logs every assembly at INFO: library chatter, shown only with -v
+    logging.getLogger("skfem").setLevel(logging.DEBUG if verbosity > 0 else logging.WARNING)
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = verbosity
 

@@ -34,7 +34,6 @@ from .tracker.files import (
     dump_yaml,
     file_hash,
     get_field,
-    get_matrix,
     plain,
     read_csv_table,
     read_npz,
@@ -482,7 +481,7 @@ def write_colmap(folder, rig: Rig, *, first_camera_id: int = 1, rig_id: int = 1)
         lines_cam.append(" ".join([str(cid), model, str(cam.width), str(cam.height)] + [_fmt(p) for p in params]))
     ref = rig.cameras[0]
     sensors = []
-    for idx, cam in enumerate(rig.cameras[1:], start=1):
+    for idx in range(1, len(rig.cameras)):
         T = rig.cam_from_cam(idx, 0)
         pose = _quaternion_wxyz(T[:3, :3]) + list(T[:3, 3])
         sensors.append(f"CAMERA {first_camera_id + idx} 1 " + " ".join(_fmt(v) for v in pose))
@@ -613,7 +612,8 @@ _RENDER_TRUTH_SCHEMA = {
     "fiducial_positions": ArraySpec("f", ("T", "D", 3)), "instrument_tip": ArraySpec("f", ("T", 3), finite="nan"),
     "instrument_present": ArraySpec(_FLAG, ("T",)), "instrument_mask": ArraySpec("u", ("T", "NC", None, None)),
 }
-_RENDER_TRUTH_SCHEMA = {k: ArraySpec(v.kinds, v.shape, v.finite, required=False) for k, v in _RENDER_TRUTH_SCHEMA.items()}
+_RENDER_TRUTH_SCHEMA = {k: ArraySpec(v.kinds, v.shape, v.finite, required=False)
+                        for k, v in _RENDER_TRUTH_SCHEMA.items()}
 
 
 def read_render_truth(path) -> tuple[dict, dict]:

@@ -42,6 +42,7 @@ __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
+    "read_npz_meta",
     "write_npz", "read_csv_table", "get_matrix",
 ]
 
@@ -74,6 +75,9 @@ class InputError(ValueError):
         self.field = None if field is None else str(field)
         self.reason = str(reason)
         super().__init__(": ".join(p for p in (self.path, self.field, self.reason) if p))
+
+    def __reduce__(self):  # picklable: raised in worker processes (heartcv simulate --workers)
+        return type(self), (self.path, self.reason, self.field)
 
     def in_file(self, path) -> InputError:
         """The same error naming ``path`` (unchanged if it already names a file)."""
@@ -212,6 +216,11 @@ def refuse_overlap(outputs: dict, inputs: dict) -> None:
         Naming both paths and both labels.
     """
     ins = [(label, Path(p), _resolved(p)) for label, p in inputs.items() if p is not None]
+    outs = [(label, op) for label, op in outputs.items() if op is not None]
+    for i, (olabel, op) in enumerate(outs):
+        for other_label, other in outs[:i]:
+            if _resolved(op) == _resolved(other):
+                raise InputError(op, f"is also the output {other_label}; two outputs need two paths", olabel)
     for olabel, op in outputs.items():
         if op is None:
             continue
@@ -645,6 +654,12 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path, max_bytes: in
     if fortran:
         return arr.reshape(shape[::-1]).T.copy()
     return arr.reshape(shape).copy()
+
+
+def read_npz_meta(path) -> dict:
+    """The ``meta_json`` object of a heartcv ``.npz`` file (its arrays are not read); InputError as :func:`read_npz`.
+    """
+    return _npz_meta_only(path)
 
 
 def _npz_meta_only(path) -> dict:

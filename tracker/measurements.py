@@ -202,7 +202,8 @@ class EstimateSet:
         if self.phi_mean is not None:
             pm, pc = np.asarray(self.phi_mean), np.asarray(self.phi_cov)
             if pm.ndim != 2 or pm.shape[0] != K or pc.shape != (K, pm.shape[1], pm.shape[1]):
-                raise InputError(None, f"shapes (K, M) and (K, M, M) expected, got {pm.shape}, {pc.shape}", "phi_mean/phi_cov")
+                raise InputError(None, f"shapes (K, M) and (K, M, M) expected, got {pm.shape}, {pc.shape}",
+                                 "phi_mean/phi_cov")
         P = np.asarray(self.point_ids).size
         expect = {
             "state_mean": (K, None), "state_var": (K, None), "theta": (K, 5), "theta_std": (K, 5),

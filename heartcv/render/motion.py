@@ -80,35 +80,14 @@ class TruthMotion:
 
 
 def _stiffness_schedule(model, spec, load, t_pre):
-    base = model.config.theta.copy()
-    a = spec.stiffness_amplitude
-    if a == 0:
-        return None
-    ic = model.config.inputs
-    if spec.stiffness_shape == "pressure":
-        if "pressure" not in model.input_names:
-            raise InputError(None, "'pressure' needs a model with a pressure input", "motion.stiffness_cycle.shape")
-        col = model.input_names.index("pressure")
-        tt = np.linspace(0.0, 60.0 / ic.heart_rate_bpm * 3, 3001)
-        p_max = float(np.max(load(tt)[:, col]))
-        if not p_max > 0:
-            raise InputError(None, "the model's pressure is never positive", "motion.stiffness_cycle.shape")
+    """The scene's E(t) (``motion.stiffness_cycle``): :func:`heartcv.tracker.simulate.stiffness_schedule` with the
+    cycle's origin at the first frame (after the pre-roll ``t_pre``)."""
+    from heartcv.tracker.simulate import stiffness_schedule
 
-        def shape(t):
-            return max(float(load(np.atleast_1d(t))[0, col]), 0.0) / p_max
-    else:
-        from heartcv.tracker import inputs as inp
-
-        def shape(t):
-            return float(inp.active_tension(np.atleast_1d(t), heart_rate_bpm=ic.heart_rate_bpm, t_max=1.0,
-                                            rr_intervals=ic.rr_intervals)[0])
-
-    def theta(tau):
-        th = base.copy()
-        th[3] = base[3] * (1.0 + a * shape(tau - t_pre))
-        return th
-
-    return theta
+    try:
+        return stiffness_schedule(model, spec.stiffness_amplitude, spec.stiffness_shape, load=load, t_offset=t_pre)
+    except InputError as exc:  # the field inside the scene file
+        raise InputError(None, exc.reason, f"motion.{exc.field}") from None
 
 
 def simulate_truth(model_config, spec, blur, rng: np.random.Generator):

@@ -14,6 +14,7 @@ from click.testing import CliRunner
 import numpy as np
 import pytest
 
+from benchmarks.files import alias_bomb, huge_claim_copy
 from heartcv.cli.main import main
 from heartcv.tracker import files as F
 from heartcv.tracker.files import ArraySpec, InputError
@@ -139,17 +140,9 @@ def test_check_output_file_replaces_only_heartcv_files(tmp_path):
 
 
 # -- YAML ---------------------------------------------------------------------------------------------------------
-def _alias_bomb() -> str:
-    lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
-    for i in range(1, 9):
-        prev, cur = chr(96 + i), chr(97 + i)
-        lines.append(f"{cur}: &{cur} [" + ",".join([f"*{prev}"] * 9) + "]")
-    return "\n".join(lines) + "\n"
-
-
 def test_yaml_alias_bomb_deep_nesting_and_duplicates_are_refused(tmp_path):
     bomb = tmp_path / "bomb.yaml"
-    bomb.write_text(_alias_bomb())
+    bomb.write_text(alias_bomb())
     assert len(bomb.read_bytes()) < 600
     with pytest.raises(InputError, match="with its aliases expanded"):
         F.read_yaml(bomb)
@@ -366,7 +359,7 @@ def _cli_peak(args):
 
 def test_cli_refuses_alias_bomb_nested_yaml_and_huge_npy_claim_in_bounded_memory(tmp_path):
     bomb = tmp_path / "bomb.yaml"
-    bomb.write_text(_alias_bomb())
+    bomb.write_text(alias_bomb())
     res, peak = _cli_peak(["model", "info", str(bomb)])
     assert res.exit_code == 2 and str(bomb) in res.output and "aliases expanded" in res.output
     assert len(res.output) < 1000 and peak < 100 << 20
@@ -378,15 +371,21 @@ def test_cli_refuses_alias_bomb_nested_yaml_and_huge_npy_claim_in_bounded_memory
 
     model = Path(__file__).resolve().parents[2] / "sample_sequences" / "paper_patch.yaml"
     good = tmp_path / "meas.npz"
-    assert CliRunner().invoke(main, ["model", "simulate", str(model), "--duration", "0.2", "-o", str(good)]).exit_code == 0
+    res = CliRunner().invoke(main, ["model", "simulate", str(model), "--duration", "0.2", "-o", str(good)])
+    assert res.exit_code == 0, res.output
     assert read_measurements(good).n_frames > 1
-    big = tmp_path / "big.npz"
-    b = io.BytesIO()
-    np.lib.format.write_array_header_1_0(b, {"descr": "<f8", "fortran_order": False, "shape": (1 << 27,)})
-    with zipfile.ZipFile(good) as zin, zipfile.ZipFile(big, "w") as zout:   # times.npy claims 1 GiB
-        for info in zin.infolist():
-            data = b.getvalue() + b"\0" * 64 if info.filename == "times.npy" else zin.read(info)
-            zout.writestr(info.filename, data)
+    big = huge_claim_copy(good, tmp_path / "big.npz")   # times.npy claims 1 GiB
     res, peak = _cli_peak(["track", str(big), "--model", str(model), "-o", str(tmp_path / "est.npz")])
     assert res.exit_code == 2 and "header claims 1073741824 bytes" in res.output and str(big) in res.output
     assert peak < 100 << 20 and not (tmp_path / "est.npz").exists()
+
+
+def test_input_error_pickles_and_two_outputs_need_two_paths(tmp_path):
+    import pickle
+
+    e = pickle.loads(pickle.dumps(InputError("f.yaml", "bad", "x")))
+    assert (e.path, e.reason, e.field, str(e)) == ("f.yaml", "bad", "x", "f.yaml: x: bad")
+    with pytest.raises(InputError, match="is also the output -o"):
+        F.refuse_overlap({"-o": tmp_path / "a.npz", "--truth": tmp_path / "." / "a.npz"}, {})
+    F.write_npz(tmp_path / "m.npz", FMT, {"times": np.arange(2.0)}, {"x": 1})
+    assert F.read_npz_meta(tmp_path / "m.npz")["x"] == 1
