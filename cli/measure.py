@@ -70,6 +70,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     can be tracked.
     """
     from heartcv.io import FrameReader, open_frame_source, read_rig
+    from heartcv.tracker.files import InputError
     from heartcv.tracker.io import write_measurements
 
     seq = Path(sequence)
@@ -77,7 +78,10 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     _guard(output, csv_file, {"SEQUENCE": seq, "--rig": rig_file, "--mask": mask_file, "--inputs": inputs_path,
                               "SEQUENCE/timestamps.csv": seq / "timestamps.csv", "--truth": truth_file})
     rig = read_rig(rig_file)
-    source = open_frame_source(sequence, cameras=rig.names)
+    if len(rig) < 2:
+        raise InputError(rig_file, f"{len(rig)} camera ({rig.names[0]}); measure triangulates from at least 2",
+                         "cameras")
+    source = open_frame_source(sequence, cameras=rig.names, cameras_source=rig_file)
     names = rig.names
     ref = 0 if ref_camera is None else (names.index(ref_camera) if ref_camera in names else None)
     if ref is None:
@@ -90,7 +94,8 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
         raise BadInput(f"{sequence}: {count} frame(s); at least 2 expected")
     _check_sizes(source, rig, count)
     times = _frame_times(source, fps, count)
-    in_names, in_units, in_values = _inputs(inputs_path, times, required=inputs_file is not None)
+    stamps = seq / "timestamps.csv" if fps is None and (seq / "timestamps.csv").is_file() else None
+    in_names, in_units, in_values = _inputs(inputs_path, times, required=inputs_file is not None, times_from=stamps)
     roi = _mask(mask_file, rig.cameras[ref].size)
     truth = _truth(truth_file, count, names)
     be = _backend(backend, device)
@@ -150,7 +155,7 @@ def _frame_times(source, fps, count):
     return frame_times(count, timestamps=stamps, fps=fps, video_fps=source.fps)
 
 
-def _inputs(path: Path, times, required):
+def _inputs(path: Path, times, required, times_from=None):
     """(names, units, values (K, n)) of an inputs table at the frame times; none without the file."""
     import numpy as np
 
@@ -167,7 +172,8 @@ def _inputs(path: Path, times, required):
     try:
         return inputs_at_frames(cols, times)
     except InputError as exc:
-        raise exc.in_file(path) from None
+        where = f" (frame times from {times_from})" if times_from is not None and exc.field == "time_s" else ""
+        raise InputError(path, exc.reason + where, exc.field) from None
 
 
 def _mask(mask_file, size):

@@ -34,6 +34,7 @@ from .tracker.files import (
     dump_yaml,
     file_hash,
     get_field,
+    get_matrix,
     plain,
     read_csv_table,
     read_npz,
@@ -319,14 +320,16 @@ def rig_from_dict(d: dict) -> Rig:
         if not (isinstance(size, list) and len(size) == 2
                 and all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 65536 for v in size)):
             raise InputError(None, f"{where}.image_size: [width, height] expected, got {size!r}")
-        K = _matrix(e["K"], (3, 3), f"{where}.K")
-        dist = _matrix(e["dist"], None, f"{where}.dist")
-        T = _matrix(e["cam_from_rig"], (4, 4), f"{where}.cam_from_rig")
+        # plausibility: focal lengths and principal points within 1e6 px, coefficients within 1e4, poses within 1 km
+        K = _matrix(e["K"], (3, 3), f"{where}.K", 1e6)
+        dist = _matrix(e["dist"], None, f"{where}.dist", 1e4)
+        T = _matrix(e["cam_from_rig"], (4, 4), f"{where}.cam_from_rig", 1e3)
         try:
             cameras.append(Camera(name, size[0], size[1], K, dist, T))
         except (ValueError, TypeError, OverflowError) as exc:
             raise InputError(None, f"{where}: {exc}") from None
-        if "dist_names" in e and list(e["dist_names"] or []) != list(DIST_NAMES[:dist.size]):
+        names = e.get("dist_names")
+        if names is not None and (not isinstance(names, list) or names != list(DIST_NAMES[:dist.size])):
             raise InputError(None, f"{where}.dist_names: {list(DIST_NAMES[:dist.size])} expected for {dist.size} "
                              f"coefficients (OpenCV order), got {e['dist_names']!r}")
         extra = {k: v for k, v in e.items() if k not in _CAMERA_KEYS}
@@ -357,18 +360,11 @@ def rig_from_dict(d: dict) -> Rig:
     return Rig(rig.cameras, meta)
 
 
-def _matrix(v, shape, where) -> np.ndarray:
-    try:
-        a = np.array(v, dtype=float)
-    except (TypeError, ValueError, OverflowError):
-        raise InputError(None, f"{where}: numbers expected, got {v!r}") from None
-    if shape is None:
-        if a.ndim != 1:
-            raise InputError(None, f"{where}: a flat list expected")
-    elif a.shape != shape:
-        raise InputError(None, f"{where}: shape {shape} expected, got {a.shape}")
-    if not np.isfinite(a).all():
-        raise InputError(None, f"{where}: finite numbers expected")
+def _matrix(v, shape, where, max_abs=None) -> np.ndarray:
+    """A finite matrix field of a rig file (:func:`heartcv.tracker.files.get_matrix`), at most ``max_abs`` in size."""
+    a = get_matrix(v, shape, None, where)
+    if max_abs is not None and np.abs(a).max(initial=0) > max_abs:
+        raise InputError(None, f"values beyond +-{max_abs:g}: not plausible", where)
     return a
 
 
@@ -612,14 +608,36 @@ _RENDER_TRUTH_SCHEMA = {
     "fiducial_positions": ArraySpec("f", ("T", "D", 3)), "instrument_tip": ArraySpec("f", ("T", 3), finite="nan"),
     "instrument_present": ArraySpec(_FLAG, ("T",)), "instrument_mask": ArraySpec("u", ("T", "NC", None, None)),
 }
-_RENDER_TRUTH_SCHEMA = {k: ArraySpec(v.kinds, v.shape, v.finite, required=False)
+# optional, each bounded: 1e7 for pixels, seconds and pascals, 1e3 m for lengths (docs/formats.md §11)
+_RENDER_TRUTH_SCHEMA = {k: ArraySpec(v.kinds, v.shape, v.finite, required=False, max_abs=None if v.kinds != "f" else (
+    1e7 if k in ("K", "corners_uv", "times", "theta", "inputs", "incidence_deg", "dist") else 1e3))
                         for k, v in _RENDER_TRUTH_SCHEMA.items()}
+
+
+def _check_rigid(T, path, field):
+    """Rigid transforms (..., 4, 4): orthonormal rotation with determinant 1, last row 0 0 0 1."""
+    R = T[..., :3, :3]
+    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0)
+    if err > 1e-6 or np.abs(np.linalg.det(R) - 1).max(initial=0) > 1e-6 or \
+            np.abs(T[..., 3, :] - [0, 0, 0, 1]).max(initial=0) > 0:
+        raise InputError(path, "rigid transforms (rotation, translation, last row 0 0 0 1) expected", field)
 
 
 def read_render_truth(path) -> tuple[dict, dict]:
     """``(arrays, meta)`` of a render truth file, validated against docs/formats.md §11 (dtypes, shapes that agree,
     finite values, face indices inside the mesh); InputError naming the file and the array."""
     data, meta = read_npz(path, RENDER_TRUTH_FORMAT, _RENDER_TRUTH_SCHEMA)
+    if "K" in data:
+        K = data["K"]
+        if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any() or np.abs(K[:, 2] - [0, 0, 1]).max(initial=0) > 0 \
+                or np.abs(K[:, 1, 0]).max(initial=0) > 0:
+            raise InputError(path, "camera matrices [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 expected",
+                             "K")
+    for key in ("cam_from_world", "cam_from_rig", "world_from_board", "board_from_world", "world_from_patch"):
+        if key in data:
+            _check_rigid(data[key], path, key)
+    if "camera_names" in meta:
+        get_field(meta, "camera_names", "str-list", path, prefix="meta.")
     if "faces" in data:
         V = data["reference_vertices"].shape[0] if "reference_vertices" in data else 0
         f = data["faces"]
@@ -696,7 +714,7 @@ def camera_entries(folder: Path):
     return cams, videos
 
 
-def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1) -> FrameSource:
+def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras_source=None) -> FrameSource:
     """List the cameras and instants of a sequence folder.
 
     Parameters
@@ -706,6 +724,8 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1) -> Fram
         video file per camera (the same frame index is the same instant).
     cameras : sequence of str, optional
         Use these cameras, in this order (e.g. the rig file's names); default: all, in natural name order.
+    cameras_source : path, optional
+        Where ``cameras`` come from (the rig file), named in the message when one of them is absent.
     max_missing_fraction : float
         A camera may lack an image for at most this fraction of the instants, and for one instant in any case
         (each such image is reported by
@@ -729,7 +749,8 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1) -> Fram
     if cameras is not None:
         missing = [c for c in cameras if c not in found]
         if missing:
-            raise HeartcvIOError(folder, f"no images or video for camera(s) {missing}; found {found or 'none'}")
+            named = f" named in {cameras_source}" if cameras_source is not None else ""
+            raise HeartcvIOError(folder, f"no images or video for camera(s) {missing}{named}; found {found or 'none'}")
         entries = [next(e for e in entries if e[0] == c) for c in cameras]
     if len(entries) < 2:
         raise HeartcvIOError(folder, f"{len(entries)} camera(s) found ({found}); at least 2 expected (one "

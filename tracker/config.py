@@ -297,11 +297,11 @@ def _geometry(sec: _Section) -> PatchGeometry:
 
 
 THETA_RANGES = {  # name: (default, lo, hi, lo_open, hi_open); SI units
-    "rho": (1050.0, 0.0, 1e6, True, False),
+    "rho": (1050.0, 1e-3, 1e6, False, False),
     "alpha1": (2.39, 0.0, 1e4, False, False),
     "alpha2": (0.003, 0.0, 100.0, False, False),
-    "E": (150e3, 0.0, 1e12, True, False),
-    "nu": (0.45, 0.0, 0.5, True, True),
+    "E": (150e3, 1e-3, 1e12, False, False),
+    "nu": (0.45, 1e-3, 0.4999, False, False),
 }
 """Valid values of each parameter in the model file (docs/formats.md §2.4)."""
 
@@ -469,8 +469,8 @@ def model_config_from_dict(data) -> ModelConfig:
         red = root.section("reduction")
         modes = red.number("modes", 10, lo=1, hi=500)
         cap = SIZE_LIMITS["static_nu"]
-        static = _number_list(red.raw("static_nu", [0.3, 0.45, 0.49]), "reduction.static_nu", 0, 0.5, lo_open=True,
-                              hi_open=True, max_len=cap, what=f"a list of at most {cap} Poisson ratios in (0, 0.5)")
+        static = _number_list(red.raw("static_nu", [0.3, 0.45, 0.49]), "reduction.static_nu", 1e-3, 0.4999,
+                              max_len=cap, what=f"a list of at most {cap} Poisson ratios in [0.001, 0.4999]")
         red.done()
         reduction = {"modes": int(modes), "static_nu": static}
     obs = root.section("observation")

@@ -42,12 +42,13 @@ __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
-    "read_npz_meta",
+    "read_npz_meta", "check_provenance",
     "write_npz", "read_csv_table", "get_matrix",
 ]
 
 LIMITS = {
-    "yaml_bytes": 16 << 20,         # a YAML file (model, rig, target, scene, parameters)
+    "yaml_bytes": 4 << 20,          # a YAML file (model, rig, target, scene, parameters)
+    "yaml_nodes_read": 50_000,      # nodes in the text of one document (PyYAML composes ~40 000 per second)
     "yaml_depth": 32,               # nesting of mappings and sequences
     "yaml_aliases": 256,            # alias nodes (*name) in one document
     "yaml_nodes": 2_000_000,        # nodes of the document with every alias expanded
@@ -347,6 +348,7 @@ def _loader_class():
             super().__init__(stream)
             self._depth = 0
             self._aliases = 0
+            self._nodes = 0
 
         def compose_node(self, parent, index):
             if self.check_event(yaml.AliasEvent):
@@ -355,6 +357,9 @@ def _loader_class():
                     raise _Limit(f"more than {LIMITS['yaml_aliases']} aliases")
                 return super().compose_node(parent, index)
             self._depth += 1
+            self._nodes += 1
+            if self._nodes > LIMITS["yaml_nodes_read"]:
+                raise _Limit(f"more than {LIMITS['yaml_nodes_read']} nodes long")
             if self._depth > LIMITS["yaml_depth"]:
                 raise _Limit(f"nested deeper than {LIMITS['yaml_depth']} levels")
             try:
@@ -417,7 +422,10 @@ def parse_yaml(text: str, path=None):
     or a document past a limit (alias bombs, deep nesting)."""
     import yaml
 
-    loader = _loader_class()(text)
+    try:
+        loader = _loader_class()(text)   # the reader refuses non-printable characters here
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"not valid YAML: {str(exc)[:400]}") from None
     try:
         node = loader.get_single_node()
         if node is None:
@@ -428,7 +436,7 @@ def parse_yaml(text: str, path=None):
     except _Limit as exc:
         raise InputError(path, f"refused: the YAML document is {exc}") from None
     except yaml.YAMLError as exc:
-        raise InputError(path, f"not valid YAML: {exc}") from None
+        raise InputError(path, f"not valid YAML: {str(exc)[:400]}") from None
     except RecursionError:
         raise InputError(path, "refused: the YAML document is nested too deeply") from None
     finally:
@@ -589,12 +597,16 @@ class ArraySpec:
     finite : {'all', 'nan', 'any'}
         ``'all'``: every value finite; ``'nan'``: NaN allowed (missing), infinities not; ``'any'``: unchecked.
     required : bool
+    max_abs : float, optional
+        Largest magnitude accepted (physical plausibility: values such as 1e308 pass the finiteness check but
+        overflow every computation that squares them).
     """
 
     kinds: str = "f"
     shape: tuple = ()
     finite: str = "all"
     required: bool = True
+    max_abs: float | None = None
 
 
 def _npz_members(zf: zipfile.ZipFile, path) -> dict:
@@ -728,6 +740,11 @@ def _check_array(path, name: str, a: np.ndarray, spec: ArraySpec, dims: dict) ->
         if bad.any():
             what = "non-finite values" if spec.finite == "all" else "infinite values"
             raise InputError(path, f"{int(bad.sum())} {what} (first at index {np.argwhere(bad)[0].tolist()})", name)
+    if spec.max_abs is not None and a.size and a.dtype.kind in "fiu":
+        big = np.abs(a) > spec.max_abs   # NaN compares False
+        if big.any():
+            raise InputError(path, f"{int(big.sum())} values beyond +-{spec.max_abs:g} (first at index "
+                                   f"{np.argwhere(big)[0].tolist()}): not a plausible value in SI units", name)
     return a
 
 
@@ -763,6 +780,7 @@ def read_npz(path, fmt: tuple, schema: dict[str, ArraySpec], *, allow_extra: boo
         if meta.get("format_version") != fmt[1]:
             raise InputError(path, f"{fmt[0]} version {fmt[1]} supported, got {_short(meta.get('format_version'))}",
                              "meta.format_version")
+        check_provenance(meta, path, "meta.")
         missing = [k for k, s in schema.items() if s.required and k not in members]
         if missing:
             raise InputError(path, f"missing arrays {missing}")
@@ -775,6 +793,18 @@ def read_npz(path, fmt: tuple, schema: dict[str, ArraySpec], *, allow_extra: boo
         if k in arrays:
             arrays[k] = _check_array(path, k, arrays[k], spec, dims)
     return arrays, meta
+
+
+def check_provenance(d: dict, path=None, prefix: str = "") -> None:
+    """Types of the provenance keys every heartcv file may carry (docs/formats.md §1.8): ``producer`` and
+    ``heartcv_version`` strings, ``inputs_hash`` a mapping of role -> ``"sha256:<hex>"`` string."""
+    for key in ("producer", "heartcv_version"):
+        if d.get(key) is not None:
+            get_field(d, key, "str", path, prefix=prefix)
+    h = d.get("inputs_hash")
+    if h is not None and (not isinstance(h, dict) or not all(isinstance(k, str) and (v is None or isinstance(v, str))
+                                                             for k, v in h.items())):
+        raise InputError(path, "a mapping of input role -> 'sha256:<hex>' expected", f"{prefix}inputs_hash")
 
 
 def write_npz(path, fmt: tuple, arrays: dict, meta: dict) -> None:

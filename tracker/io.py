@@ -19,6 +19,7 @@ from .files import (
     ArraySpec,
     InputError,
     atomic_path,
+    check_provenance,
     dump_yaml,
     file_hash,
     get_field,
@@ -87,15 +88,18 @@ def _meta_int_list(meta, key, path, hi):
 
 
 # -- measurements --------------------------------------------------------------------------------
+# Plausibility bounds (SI): no recording is longer than 1e7 s (4 months), no point 1 km from the rig, no input
+# (pressure in Pa, respiration in m) beyond 1e9; values past them overflow the estimators' squares (1e308).
+T_MAX, L_MAX, L2_MAX, U_MAX = 1e7, 1e3, 1e6, 1e9
 _MEAS_SCHEMA = {
-    "times": ArraySpec("f", ("K",)),
+    "times": ArraySpec("f", ("K",), max_abs=T_MAX),
     "point_ids": ArraySpec("iu", ("P",)),
-    "positions": ArraySpec("f", ("K", "P", 3), finite="nan"),
-    "covariances": ArraySpec("f", ("K", "P", 3, 3), finite="nan"),
-    "reference": ArraySpec("f", ("P", 3)),
-    "inputs": ArraySpec("f", None),
-    "views": ArraySpec("iu", ("K", "P"), required=False),
-    "reprojection_rms": ArraySpec("f", ("K", "P"), finite="nan", required=False),
+    "positions": ArraySpec("f", ("K", "P", 3), finite="nan", max_abs=L_MAX),
+    "covariances": ArraySpec("f", ("K", "P", 3, 3), finite="nan", max_abs=L2_MAX),
+    "reference": ArraySpec("f", ("P", 3), max_abs=L_MAX),
+    "inputs": ArraySpec("f", None, max_abs=U_MAX),
+    "views": ArraySpec("iu", ("K", "P"), required=False, max_abs=1e6),
+    "reprojection_rms": ArraySpec("f", ("K", "P"), finite="nan", required=False, max_abs=1e7),
 }
 
 
@@ -176,21 +180,21 @@ _EST_ARRAYS = ("times", "point_ids", "state_mean", "state_var", "theta", "theta_
                "innovations", "nis", "nis_dof", "truncation_events", "step_time")
 _EST_OPTIONAL = ("phi_mean", "phi_cov", "filtered")
 _EST_SCHEMA = {
-    "times": ArraySpec("f", ("K",)),
+    "times": ArraySpec("f", ("K",), max_abs=T_MAX),
     "point_ids": ArraySpec("iu", ("P",)),
-    "state_mean": ArraySpec("f", ("K", "NX"), finite="nan"),
-    "state_var": ArraySpec("f", ("K", "NX"), finite="nan"),
-    "theta": ArraySpec("f", ("K", 5), finite="nan"),
-    "theta_std": ArraySpec("f", ("K", 5), finite="nan"),
-    "predictions": ArraySpec("f", ("K", "P", 3), finite="nan"),
-    "innovations": ArraySpec("f", ("K", "P", 3), finite="nan"),
-    "nis": ArraySpec("f", ("K",), finite="nan"),
-    "nis_dof": ArraySpec("iu", ("K",)),
-    "truncation_events": ArraySpec("iu", ("K",)),
-    "step_time": ArraySpec("f", ("K",), finite="nan"),
-    "phi_mean": ArraySpec("f", ("K", "M"), finite="nan", required=False),
-    "phi_cov": ArraySpec("f", ("K", "M", "M"), finite="nan", required=False),
-    "filtered": ArraySpec("f", ("K", "P", 3), finite="nan", required=False),
+    "state_mean": ArraySpec("f", ("K", "NX"), finite="nan", max_abs=L2_MAX),
+    "state_var": ArraySpec("f", ("K", "NX"), finite="nan", max_abs=1e12),
+    "theta": ArraySpec("f", ("K", 5), finite="nan", max_abs=1e12),
+    "theta_std": ArraySpec("f", ("K", 5), finite="nan", max_abs=1e12),
+    "predictions": ArraySpec("f", ("K", "P", 3), finite="nan", max_abs=L_MAX),
+    "innovations": ArraySpec("f", ("K", "P", 3), finite="nan", max_abs=2 * L_MAX),
+    "nis": ArraySpec("f", ("K",), finite="nan", max_abs=1e100),
+    "nis_dof": ArraySpec("iu", ("K",), max_abs=1e9),
+    "truncation_events": ArraySpec("iu", ("K",), max_abs=1e9),
+    "step_time": ArraySpec("f", ("K",), finite="nan", max_abs=T_MAX),
+    "phi_mean": ArraySpec("f", ("K", "M"), finite="nan", required=False, max_abs=1e3),
+    "phi_cov": ArraySpec("f", ("K", "M", "M"), finite="nan", required=False, max_abs=1e6),
+    "filtered": ArraySpec("f", ("K", "P", 3), finite="nan", required=False, max_abs=L_MAX),
 }
 ESTIMATORS = ("kf", "ge", "ukf", "ekf")
 
@@ -238,15 +242,15 @@ def read_estimates(path) -> EstimateSet:
 
 # -- truth ----------------------------------------------------------------------------------------
 _TRUTH_SCHEMA = {
-    "times": ArraySpec("f", ("K",)),
-    "theta": ArraySpec("f", ("K", 5)),
-    "inputs": ArraySpec("f", ("K", "NU"), required=False),
-    "translation": ArraySpec("f", ("K", 3), required=False),
-    "states": ArraySpec("f", ("K", "NX"), required=False),
-    "node_displacements": ArraySpec("f", ("K", "N", 3), required=False),
-    "point_param": ArraySpec("f", ("P", 3), required=False),
-    "reference": ArraySpec("f", ("P", 3)),
-    "positions": ArraySpec("f", ("K", "P", 3)),
+    "times": ArraySpec("f", ("K",), max_abs=T_MAX),
+    "theta": ArraySpec("f", ("K", 5), max_abs=1e12),
+    "inputs": ArraySpec("f", ("K", "NU"), required=False, max_abs=U_MAX),
+    "translation": ArraySpec("f", ("K", 3), required=False, max_abs=L_MAX),
+    "states": ArraySpec("f", ("K", "NX"), required=False, max_abs=L2_MAX),
+    "node_displacements": ArraySpec("f", ("K", "N", 3), required=False, max_abs=L_MAX),
+    "point_param": ArraySpec("f", ("P", 3), required=False, max_abs=L_MAX),
+    "reference": ArraySpec("f", ("P", 3), max_abs=L_MAX),
+    "positions": ArraySpec("f", ("K", "P", 3), max_abs=L_MAX),
 }
 
 
@@ -430,6 +434,7 @@ def parameters_from_dict(d, path="<parameters>"):
     if not isinstance(at_bound, list) or any(not isinstance(n, str) or n not in est for n in at_bound):
         raise bad("at_bound", f"a list of estimated names expected, got {at_bound!r}")
     meta = {k: v for k, v in d.items() if k not in _PARAM_KEYS}
+    check_provenance(meta, path)
     try:
         return FitResult(
             theta, theta_std, tuple(est), phi, cov_phi, cov_theta, epsilon,

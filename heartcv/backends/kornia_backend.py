@@ -89,7 +89,7 @@ class KorniaBackend:
         try:
             self.device = torch.device(device)
         except (RuntimeError, TypeError) as exc:  # torch's parser of device strings: the user's option
-            raise InputError(None, f"not a torch device ({exc})", "--device") from None
+            raise InputError(None, f"{device!r} is not a torch device ({exc})", "--device") from None
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise InputError(None, f"{device!r}: torch sees no CUDA device", "--device")
         if chunk < 1:

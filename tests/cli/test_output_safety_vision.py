@@ -380,5 +380,5 @@ def test_out_of_range_options_exit_2(tmp_path, cmd, args, message):
 def test_measure_unknown_device_exit_2(case):
     pytest.importorskip("kornia")
     res = _measure(case, "-o", case["root"] / "meas.npz", "--backend", "kornia", "--device", "nonsense")
-    _refused(res, "--device nonsense: ")
+    _refused(res, "--device: 'nonsense' is not a torch device")
     assert not (case["root"] / "meas.npz").exists()

@@ -79,7 +79,7 @@ def test_kornia_backend_identity(kb):
     assert get_backend("kornia").device.type in ("cpu", "cuda")
     from heartcv.tracker.files import InputError
 
-    with pytest.raises(InputError, match="--device: not a torch device"):
+    with pytest.raises(InputError, match="--device: .nope. is not a torch device"):
         get_backend("kornia", "nope")
 
 
