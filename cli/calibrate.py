@@ -66,7 +66,8 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     jobs = jobs or min(os.cpu_count() or 1, 8)
     names = [c[0] for c in cameras]
     detections, sizes, view_names, used_files = _detect_all(cameras, spec, every, jobs, verbosity)
-    rig = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views)
+    rig = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views,
+                     target_file)
     rig = type(rig)(rig.cameras, dict(rig.meta, producer=PRODUCER,
                                       inputs_hash=_inputs_hash(target_file, used_files)))
     _summarise(rig, output, _write(out, rig, **exports), as_json)
@@ -212,7 +213,7 @@ def _inputs_hash(target_file, files):
 
 
 # -- calibration and outputs ------------------------------------------------------------------------------------
-def _calibrate(detections, spec, sizes, names, view_names, dist_size, max_view_rms, min_views):
+def _calibrate(detections, spec, sizes, names, view_names, dist_size, max_view_rms, min_views, target_file):
     from heartcv.calibration import CalibrationError, usable_view
     from heartcv.calibration_rig import calibrate_rig
 
@@ -226,7 +227,7 @@ def _calibrate(detections, spec, sizes, names, view_names, dist_size, max_view_r
         return calibrate_rig(detections, spec, sizes, names=names, view_names=view_names, dist_size=dist_size,
                              max_view_rms=max_view_rms, min_views=min_views)
     except CalibrationError as exc:
-        raise StageFailed(f"calibration failed: {exc}; no rig file written") from None
+        raise StageFailed(f"calibration failed with the target {target_file}: {exc}; no rig file written") from None
 
 
 def _write(out: Path, rig, colmap: Path, kalibr: Path) -> dict:

@@ -17,7 +17,7 @@ import sys
 
 import click
 
-from heartcv.tracker.files import InputError, check_output_file, check_output_folder, refuse_overlap
+from heartcv.tracker.files import check_output_file, check_output_folder, refuse_overlap
 
 # Upper bounds of counts and sizes that no real run needs and that would exhaust the machine (docs/cli.md §1.4)
 MAX_SEED = 2**63 - 1
@@ -50,7 +50,9 @@ class Float(click.ParamType):
     def _range(self) -> str:
         lo = "-inf" if self.lo is None else f"{self.lo:g}"
         hi = "inf" if self.hi is None else f"{self.hi:g}"
-        return f"{'(' if self.lo_open or self.lo is None else '['}{lo}, {hi}{')' if self.hi_open or self.hi is None else ']'}"
+        left = "(" if self.lo_open or self.lo is None else "["
+        right = ")" if self.hi_open or self.hi is None else "]"
+        return f"{left}{lo}, {hi}{right}"
 
     def get_metavar(self, param, ctx=None):
         return f"FLOAT {self._range()}"

@@ -330,7 +330,6 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     idx = np.flatnonzero(searchable)
     o, d, uv0 = origins[idx], dirs[idx], uv_ref[idx]
     n = len(idx)
-    rows = np.arange(n)
     others = [c for c in range(C) if c != ref and images[c] is not None]
 
     def fine(sub, t_center, normals, span, use=None):

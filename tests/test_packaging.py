@@ -27,7 +27,8 @@ for target in COMMANDS.values():
     importlib.import_module(target.split(":")[0])
 # nothing of heartcv replaced or extended the dummies
 assert sys.modules["tracker"] is tracker and sys.modules["cli"] is cli
-assert not [m for m in sys.modules if m.startswith(("tracker.", "cli."))], [m for m in sys.modules if m.startswith(("tracker.", "cli."))]
+leaked = [m for m in sys.modules if m.startswith(("tracker.", "cli."))]
+assert not leaked, leaked
 print(heartcv.tracker.__file__, heartcv.cli.__file__, len(names))
 """
 

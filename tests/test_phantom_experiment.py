@@ -37,7 +37,8 @@ def work(tmp_path_factory):
 
 def _heartcv(*args):
     env = dict(os.environ, PYTHONPATH=str(SAMPLES.parent))
-    r = subprocess.run([sys.executable, "-m", "heartcv.cli.main", *map(str, args)], env=env, capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "heartcv.cli.main", *map(str, args)], env=env, capture_output=True,
+                       text=True)
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout) if "--json" in args else None
 

@@ -212,7 +212,8 @@ def _integer(v, name: str, lo: int, hi: int, what: str = "an integer") -> int:
 def _number_list(v, name: str, lo, hi, *, lo_open=False, hi_open=False, n=None, max_len=None,
                  what="a list of numbers") -> tuple:
     """A list of numbers in a range: ConfigError naming the list (wrong type or length) or the entry."""
-    if not isinstance(v, (list, tuple)) or (n is not None and len(v) != n) or (max_len is not None and len(v) > max_len):
+    if (not isinstance(v, (list, tuple)) or (n is not None and len(v) != n)
+            or (max_len is not None and len(v) > max_len)):
         raise ConfigError(name, f"{what} expected, got {_show(v)}")
     return tuple(_number(x, f"{name}[{i}]", lo, hi, lo_open, hi_open) for i, x in enumerate(v))
 

@@ -131,7 +131,8 @@ def _check_nodes(nodes, weights, M):
 
 
 def _assemble(nodes, w, y, expected_sandwich, Q_n, Q_l) -> GaussianState:
-    """Mixture moments of spec §2.3 from the nodes, weights, conditional means ``y_i`` and ``sum w_i A_i C_l|n A_i^T``."""
+    """Mixture moments of spec §2.3 from the nodes, weights, conditional means ``y_i`` and
+    ``sum w_i A_i C_l|n A_i^T``."""
     M = nodes.shape[1]
     n_l = y.shape[1]
     n = M + n_l

@@ -17,7 +17,7 @@ steps completed (``completed_steps < K``), so nothing downstream can mistake it 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 import logging
 import time
 from typing import Callable

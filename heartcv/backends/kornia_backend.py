@@ -121,8 +121,8 @@ class KorniaBackend:
     # -- the interface ---------------------------------------------------------------------------------------------
     def pyramid(self, image, levels):
         """The image and ``levels`` halvings as ``cv2.pyrDown`` makes them: a list of 2-D float32 tensors."""
-        import torch
         from kornia.filters import filter2d_separable
+        import torch
 
         pyr = [self._image(image)]
         taps = torch.tensor([_PYR_TAPS], dtype=torch.float32, device=self.device) / 16.0
@@ -233,8 +233,8 @@ class KorniaBackend:
 
     def corner_response(self, gray, block_size=7):
         """``cv2.cornerMinEigenVal(gray, block_size, ksize=3)`` (float32 numpy (H, W)); module docstring."""
-        import torch
         from kornia.filters import filter2d, filter2d_separable, get_spatial_gradient_kernel2d
+        import torch
 
         g = np.asarray(gray)
         if g.ndim != 2:

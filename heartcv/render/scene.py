@@ -449,8 +449,12 @@ def _motion(f: _Fields) -> MotionSpec:
         if np.linalg.norm(respiration["direction"]) == 0:
             raise SceneError(r.name("direction"), "a non-zero vector expected")
         r.done()
-    spec = MotionSpec(model, f.number("duration_s", d.duration_s, 0, 3600, lo_open=True),
-                      f.number("frame_rate_hz", d.frame_rate_hz, 1, 1000),
+    duration = f.number("duration_s", d.duration_s, 0, 3600, lo_open=True)
+    rate = f.number("frame_rate_hz", d.frame_rate_hz, 1, 1000)
+    if duration * rate < 1 - 1e-9:  # K = floor(duration * rate) + 1 frames: at least two
+        raise SceneError(f.name("duration_s"), f"at least one frame interval (1 / frame_rate_hz = {1 / rate:.4g} s) "
+                                               f"expected, got {duration!r}")
+    spec = MotionSpec(model, duration, rate,
                       f.number("substeps", d.substeps, 1, 100, integer=True), amp, shape, respiration,
                       f.flag("process_noise", d.process_noise))
     f.done()

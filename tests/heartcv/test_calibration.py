@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from heartcv.calibration import (CalibrationError, calibrate_intrinsics, outlier_views, usable_view)
+from heartcv.calibration import CalibrationError, calibrate_intrinsics, outlier_views, usable_view
 from heartcv.calibration_ba import RigProblem, _schur_solve, _State, bundle_adjust, rotvec_to_matrix
 from heartcv.calibration_rig import calibrate_rig, calibrate_rig_detailed, robust_mean_pose
 from heartcv.camera import Camera, invert_pose, pose_matrix
@@ -316,7 +316,7 @@ def test_schur_covariance_equals_dense_inverse():
     s = _State(ba.intrinsics, ba.cam_from_rig[:, :3, :3], ba.cam_from_rig[:, :3, 3], ba.rig_from_board[:, :3, :3],
                ba.rig_from_board[:, :3, 3])
     J_i, J_c, J_v = prob.jacobian(s)
-    M, V, ni = prob.obs_cam.size, prob.n_view, prob.ni
+    M, ni = prob.obs_cam.size, prob.ni
     J = np.zeros((M, 2, prob.n_params))
     for m in range(M):
         c, v = prob.obs_cam[m], prob.obs_view[m]

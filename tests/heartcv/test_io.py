@@ -7,14 +7,30 @@ import re
 import cv2
 import numpy as np
 import pytest
-import yaml
 from scipy.spatial.transform import Rotation
+import yaml
 
 from heartcv import __version__
 from heartcv.camera import Camera, Rig, pose_matrix
-from heartcv.io import (HeartcvIOError, atomic_path, colmap_camera, dump_yaml, kalibr_camchain, list_image_folder,
-                        read_image, read_rig, read_target, rig_from_dict, rig_to_dict, write_board_image,
-                        write_colmap, write_image, write_kalibr, write_rig, write_target)
+from heartcv.io import (
+    HeartcvIOError,
+    atomic_path,
+    colmap_camera,
+    dump_yaml,
+    kalibr_camchain,
+    list_image_folder,
+    read_image,
+    read_rig,
+    read_target,
+    rig_from_dict,
+    rig_to_dict,
+    write_board_image,
+    write_colmap,
+    write_image,
+    write_kalibr,
+    write_rig,
+    write_target,
+)
 from heartcv.targets import INCH_M, TargetSpec, render_board
 
 TARGET = TargetSpec("charuco", (11, 8), 0.012, 0.009, "DICT_5X5_250", name="default")

@@ -8,8 +8,14 @@ import pytest
 
 from heartcv.camera import Camera, pose_matrix
 from heartcv.features import detect_corners
-from heartcv.matching import (bisector_normals, local_planes, match_points, normal_hypotheses, patch_offsets,
-                              ray_depth_range)
+from heartcv.matching import (
+    bisector_normals,
+    local_planes,
+    match_points,
+    normal_hypotheses,
+    patch_offsets,
+    ray_depth_range,
+)
 
 from .synthetic_scene import translating_scene
 
@@ -104,8 +110,9 @@ def test_a_camera_with_unrelated_content_is_never_matched(gentle, bad, kind):
     The normal refinement and a last depth sweep use only the cameras that accept the point, so the two-view
     points stay precise (measured: 0.098 / 0.087 px in uv, 0.090 / 0.079 px-equivalent in depth; when the
     rejected camera still took part: 0.3 px and 0.7 px)."""
-    import cv2
     import dataclasses
+
+    import cv2
 
     scene, images, uv, _ = gentle
     imgs = [im.astype(np.float32) for im in images]

@@ -16,9 +16,9 @@ import csv
 import json
 from pathlib import Path
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
 

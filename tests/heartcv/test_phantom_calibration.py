@@ -22,10 +22,10 @@ import json
 import math
 from pathlib import Path
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 
 from heartcv.cli.main import main
 

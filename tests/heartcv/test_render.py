@@ -69,14 +69,41 @@ def test_default_rig_matches_design():
      "phantom.world_from_patch"),
     ({"lighting": {"kind": "sun"}}, "lighting.kind"),
     ({"surprise": 1}, "surprise"),
+    # hardened: huge integers, NaN, ragged or non-numeric matrices, mixed key types, size caps
+    ({"rig": {"working_distance_m": 10**400}}, "rig.working_distance_m"),
+    ({"seed": 10**30}, "seed"),
+    ({"seed": 1.5}, "seed"),
+    ({"rig": {"distortion": [10**60, 0, 0, 0]}}, "rig.distortion"),
+    ({"rig": {"image_size": [20000, 20000]}}, "rig.image_size"),
+    ({"rig": {"per_camera": [{"focal_mm": float("nan")}]}}, "rig.per_camera[0].focal_mm"),
+    ({"phantom": {"world_from_patch": [[1, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}},
+     "phantom.world_from_patch"),
+    ({"phantom": {"world_from_patch": [["a", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}},
+     "phantom.world_from_patch"),
+    ({"phantom": {"world_from_patch": [[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}},
+     "phantom.world_from_patch"),
+    ({"noise": {"bits": 8.0}}, "noise.bits"),
+    ({"noise": {"bits": True}}, "noise.bits"),
+    ({"motion_blur": {1: "a", "b": 2}}, "motion_blur.1"),
+    ({"format_version": True}, "format_version"),
 ])
 def test_scene_errors_name_the_field(patch, field):
+    from heartcv.tracker.files import InputError
+
     d = {"motion": {"model": "m.yaml"}}
     for key, val in patch.items():
         d[key] = {**d.get(key, {}), **val} if isinstance(val, dict) else val
     with pytest.raises(SceneError) as err:
         scene_from_dict(d)
-    assert err.value.field == field and str(err.value).startswith(field)
+    assert isinstance(err.value, InputError) and err.value.path is None
+    assert err.value.field == field and str(err.value).startswith(field + ": ")
+
+
+@pytest.mark.parametrize("data", [[1, 2], "scene", 3])
+def test_scene_document_must_be_a_mapping(data):
+    with pytest.raises(SceneError, match="a mapping expected") as err:
+        scene_from_dict(data)
+    assert err.value.field is None
 
 
 # -- phantom -----------------------------------------------------------------------------------------------------

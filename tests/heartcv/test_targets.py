@@ -5,8 +5,15 @@ import cv2
 import numpy as np
 import pytest
 
-from heartcv.targets import (INCH_M, TargetSpec, board_extent_m, board_reflectance, board_texture, exact_px_per_m,
-                             render_board)
+from heartcv.targets import (
+    INCH_M,
+    TargetSpec,
+    board_extent_m,
+    board_reflectance,
+    board_texture,
+    exact_px_per_m,
+    render_board,
+)
 
 CHARUCO = TargetSpec("charuco", (11, 8), 0.012, 0.009, "DICT_5X5_250", name="default")
 CHESS = TargetSpec("chessboard", (9, 6), 0.025)
@@ -196,3 +203,38 @@ def test_validation_errors(kwargs, match):
 def test_from_dict_errors(d, match):
     with pytest.raises(ValueError, match=match):
         TargetSpec.from_dict(d)
+
+
+_CHESS = {"type": "chessboard", "inner_corners": [9, 6], "square_m": 0.025}
+_CHARUCO = {"type": "charuco", "squares": [11, 8], "square_m": 0.012, "marker_m": 0.009, "dictionary": "DICT_5X5_250"}
+
+
+@pytest.mark.parametrize("d, field", [
+    ({**_CHESS, "square_m": 10**400}, "square_m"),
+    ({**_CHESS, "square_m": -10**30}, "square_m"),
+    ({**_CHESS, "square_m": 0.5}, "square_m"),  # a 5 m board
+    ({**_CHESS, "inner_corners": [10**7, 6]}, "inner_corners"),
+    ({**_CHESS, "inner_corners": [9, 6e10]}, "inner_corners"),
+    ({**_CHESS, "inner_corners": [9, 6, 3]}, "inner_corners"),
+    ({**_CHESS, 1: "x"}, "1"),
+    ({**_CHESS, "format_version": True}, "format_version"),
+    ({**_CHESS, "legacy_pattern": True}, "legacy_pattern"),
+    ({**_CHESS, "dictionary": "DICT_4X4_50"}, "dictionary"),
+    ({**_CHESS, "name": None}, "name"),
+    ({**_CHESS, "type": ["chessboard"]}, "type"),
+    ({**_CHARUCO, "marker_m": 10**60}, "marker_m"),
+    ({**_CHARUCO, "marker_m": float("nan")}, "marker_m"),
+    ({**_CHARUCO, "dictionary": ["DICT_5X5_250"]}, "dictionary"),
+    ({**_CHARUCO, "squares": [40, 40]}, "dictionary"),  # 800 markers for a dictionary of 250
+    ({**_CHARUCO, "legacy_pattern": ""}, "legacy_pattern"),
+    ({**_CHARUCO, "squares": "11x8"}, "squares"),
+    ([_CHESS], None),
+])
+def test_target_errors_are_input_errors_naming_the_field(d, field):
+    """docs/formats.md §7.1: every malformed target mapping raises InputError (a ValueError) naming its key."""
+    from heartcv.tracker.files import InputError
+
+    with pytest.raises(InputError) as err:
+        TargetSpec.from_dict(d)
+    assert err.value.field == field and err.value.path is None
+    assert str(err.value).startswith(f"{field}: " if field else "target: ")

@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from heartcv.tracker.fem import ONE_POINT_HEX, assemble
 from heartcv.tracker.geometry import PatchGeometry, build_mesh
@@ -104,6 +103,7 @@ def test_pressure_load_is_resultant_on_projected_area():
 
 def _static_max_deflection(grid, nu, sri=True, E=30e3, p=1000.0):
     import scipy.sparse.linalg as spla
+
     from heartcv.tracker.params import lame
 
     mesh = build_mesh(PatchGeometry(grid=grid))

@@ -113,10 +113,45 @@ def test_reduced_basis_matches_full_model(paper_dict, nu, tol):
 
 
 def test_full_model_too_large_is_refused(paper_dict):
+    """Refused by validation (the model file's field named) and, for a config made otherwise, by build_model
+    before the mesh is built."""
+    from dataclasses import replace
+
+    from heartcv.tracker.config import ConfigError
+
     d = copy.deepcopy(paper_dict)
     d["geometry"]["grid"] = [31, 21, 4]
-    with pytest.raises(ValueError, match="reduction"):
+    with pytest.raises(ConfigError, match="reduction") as info:
+        model_config_from_dict(d)
+    assert info.value.field == "geometry.grid"
+    d["reduction"] = {"modes": 10}
+    cfg = replace(model_config_from_dict(d), reduction=None)
+    with pytest.raises(ConfigError, match="6612 free DOFs") as info:
+        build_model(cfg)
+    assert info.value.field == "geometry.grid"
+
+
+def test_ukf_kappa_must_leave_a_positive_spread(paper_dict):
+    from heartcv.tracker.config import ConfigError
+
+    d = copy.deepcopy(paper_dict)
+    d["estimation"]["ukf"] = {"kappa": -170.0}  # n = 168 states + 2 parameters
+    with pytest.raises(ConfigError, match="must exceed -n = -170") as info:
         build_model(model_config_from_dict(d))
+    assert info.value.field == "estimation.ukf.kappa"
+    d["estimation"]["ukf"] = {"kappa": -169.0}
+    assert build_model(model_config_from_dict(d)).state_dim == 168
+
+
+@pytest.mark.parametrize("reduction", [None, {"modes": 500, "static_nu": [0.3, 0.3]}])
+def test_smallest_mesh_builds(reduction):
+    """One free node column (grid [3, 3, 2]: 6 free DOFs); reduction.modes is capped at free DOFs - 2."""
+    d = {"geometry": {"grid": [3, 3, 2]}, "inputs": {"active_tension": {"t_max": 1000.0}}, "reduction": reduction}
+    cfg = model_config_from_dict(d)
+    m = build_model(cfg)
+    assert m.free_dofs.size == 6 and m.r <= 6
+    sys = m.system(cfg.theta)
+    assert np.isfinite(sys.A).all() and m.default_points().shape == (1, 3)
 
 
 def test_acceleration_process_noise_is_van_loan(paper_dict):

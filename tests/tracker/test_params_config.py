@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from heartcv.tracker.config import ConfigError, model_config_from_dict
+from heartcv.tracker.files import InputError
 from heartcv.tracker.params import NAMES, ParameterSpace, lame, nu_from_s, s_from_nu
 
 
@@ -72,12 +73,62 @@ def _set(d, path, value):
     ("inputs.pressure.heart_rate_bpm", 400, "inputs.pressure.heart_rate_bpm"),
     ("parameters.E", "soft", "parameters.E"),
     ("unknown_section", {}, "unknown_section"),
+    # hardened (docs/formats.md §2.1): finite numbers in documented ranges, typed list entries, size caps
+    ("parameters.E", 10**400, "parameters.E"),
+    ("parameters.rho", float("inf"), "parameters.rho"),
+    ("parameters.nu", 1e-300, "parameters.nu"),
+    ("parameters.E", True, "parameters.E"),
+    ("geometry.length", 1e308, "geometry.length"),
+    ("geometry.radius_long", -float("inf"), "geometry.radius_long"),
+    ("geometry.grid", [9, 2, 2], "geometry.grid[1]"),
+    ("geometry.grid", [9, 4.5, 2], "geometry.grid[1]"),
+    ("geometry.grid", [9, 10**30, 2], "geometry.grid[1]"),
+    ("geometry.grid", [9, 4], "geometry.grid"),
+    ("geometry.grid", [200, 200, 2], "geometry.grid"),
+    ("geometry.grid", [40, 30, 2], "geometry.grid"),  # 6048 free DOFs without a reduction
+    ("geometry", {1: "a", "b": 2}, "geometry.1"),
+    ("estimation.estimate", [["E"]], "estimation.estimate"),
+    ("estimation.bounds.E", [1.0, "x"], "estimation.bounds.E[1]"),
+    ("estimation.prior_std.E", 1e6, "estimation.prior_std.E"),
+    ("estimation.prior_std", {"E": 1e-12}, "estimation.prior_std.E"),
+    ("estimation.ukf.alpha", 1e-300, "estimation.ukf.alpha"),
+    ("inputs.pressure.rr_intervals", [1.0, "nan"], "inputs.pressure.rr_intervals[1]"),
+    ("inputs.pressure.rr_intervals", [], "inputs.pressure.rr_intervals"),
+    ("inputs.respiration", {"direction": ["x", 0, 0]}, "inputs.respiration.direction[0]"),
+    ("inputs.respiration", {"direction": [1e308, 1e308, 0]}, "inputs.respiration.direction[0]"),
+    ("inputs.respiration", {"direction": [0, 0, 0]}, "inputs.respiration.direction"),
+    ("noise.process.kind", ["diagonal"], "noise.process.kind"),
+    ("noise.initial.position_std", 1e-300, "noise.initial.position_std"),
+    ("reduction", {"static_nu": [0.3] * 11}, "reduction.static_nu"),
+    ("reduction", {"static_nu": [0.3, 0.5]}, "reduction.static_nu[1]"),
+    ("observation", {"points": {"grid": [100, 100]}}, "observation.points"),
+    ("observation", {"points": {"grid": [3, True]}}, "observation.points.grid[1]"),
+    ("observation", {"points": ["epicardial_nodes"]}, "observation.points"),
+    ("name", {"a": 1}, "name"),
+    ("format_version", True, "format_version"),
 ])
 def test_config_errors_name_the_field(paper_dict, path, value, field):
     with pytest.raises(ConfigError) as info:
         model_config_from_dict(_set(paper_dict, path, value))
+    assert isinstance(info.value, InputError) and info.value.path is None
     assert info.value.field == field
-    assert field in str(info.value)
+    assert str(info.value).startswith(field + ": ")
+
+
+def test_prior_std_si_is_checked_in_phi_units(paper_dict):
+    d = _set(paper_dict, "estimation.prior_std", {"nu": 0.5})
+    model_config_from_dict(_set(d, "estimation.prior_std_si", {"E": 3e4}))  # 0.2 in phi units
+    with pytest.raises(ConfigError, match="prior std of 6.67e\\+06 in phi units") as info:
+        model_config_from_dict(_set(d, "estimation.prior_std_si", {"E": 1e12}))
+    assert info.value.field == "estimation.prior_std_si.E"
+
+
+@pytest.mark.parametrize("data, kind", [([1, 2], "list"), ("model", "str"), (3, "int")])
+def test_model_document_must_be_a_mapping(data, kind):
+    with pytest.raises(ConfigError, match=f"a mapping expected, got {kind}") as info:
+        model_config_from_dict(data)
+    assert info.value.field is None
+    assert str(info.value.in_file("m.yaml")).startswith("m.yaml: a mapping expected")
 
 
 def test_config_defaults_and_numeric_strings(paper_dict):
@@ -85,5 +136,6 @@ def test_config_defaults_and_numeric_strings(paper_dict):
     assert cfg.theta[3] == 2e5
     cfg = model_config_from_dict({})
     np.testing.assert_allclose(cfg.theta, [1050, 2.39, 0.003, 150e3, 0.45])
+    assert model_config_from_dict(None).geometry == cfg.geometry  # an empty file: the default model
     assert cfg.geometry.grid == (9, 4, 2) and cfg.input_names == ("pressure",)
     assert list(NAMES) == ["rho", "alpha1", "alpha2", "E", "nu"]

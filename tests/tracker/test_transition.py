@@ -1,4 +1,5 @@
-"""TransitionFamily (tracker/transition.py) against the dense reference ``PatchModel.system`` (docs/spec/estimator.md §7,
+"""TransitionFamily (tracker/transition.py) against the dense reference ``PatchModel.system``
+(docs/spec/estimator.md §7,
 §8 item 9): the modal batch path must reproduce ``A(theta)``, ``B0(theta)``, ``B1(theta)``, the propagation
 ``A x + B0 u0 + B1 u1`` and the weighted sandwich ``sum_i w_i A_i C A_i^T`` to rounding.
 
@@ -19,10 +20,10 @@ import copy
 import numpy as np
 import pytest
 
-from tests.conftest import load_yaml
 from heartcv.tracker.config import model_config_from_dict
 from heartcv.tracker.model import build_model
 from heartcv.tracker.transition import TransitionFamily
+from tests.conftest import load_yaml
 
 RTOL = 1e-12  # spec §8 item 9; see the module docstring for the observed margin
 RTOL_ILL = 5e-12  # the ill-conditioned 'light_soft' case only (module docstring)
