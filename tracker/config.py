@@ -325,7 +325,7 @@ def _per_parameter(sec: _Section, allowed, *, pair=False, hi=math.inf):
                 raise ConfigError(sec._name(key), f"[lower, upper] expected, got {_show(v)}")
             out[key] = tuple(_number(x, f"{sec._name(key)}[{i}]", allow_inf=True) for i, x in enumerate(v))
         else:
-            out[key] = sec.number(key, lo=0, hi=hi)
+            out[key] = sec.number(key, lo=0, hi=hi[key] if isinstance(hi, dict) else hi)
     sec.done()
     return out
 
@@ -338,7 +338,7 @@ def _estimation(sec: _Section) -> EstimationConfig:
         raise ConfigError(sec._name("estimate"),
                           f"a list of parameter names from {list(NAMES)} expected, got {_show(est)}")
     prior = _per_parameter(sec.section("prior_std"), NAMES, hi=MAX_PRIOR_STD_PHI)
-    prior_si = _per_parameter(sec.section("prior_std_si"), NAMES)
+    prior_si = _per_parameter(sec.section("prior_std_si"), NAMES, hi={n: r[2] for n, r in THETA_RANGES.items()})
     both = sorted(set(prior) & set(prior_si))
     if both:
         raise ConfigError(sec._name("prior_std_si"), f"{both[0]} is also given in prior_std; give one of the two")

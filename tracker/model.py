@@ -319,7 +319,9 @@ def _ritz_basis(fe, free, loads, theta, modes, static_nu, volume):
         lu = spla.splu((lam * Kl + mu * Km).tocsc())
         cols.append(lu.solve(loads) if loads.size else np.zeros((K0.shape[0], 0)))
     V = np.hstack(cols)
-    V = V / np.sqrt(np.einsum("ij,ij->j", V, M0 @ V))
+    norm2 = np.einsum("ij,ij->j", V, M0 @ V)
+    nonzero = norm2 > 1e-24 * norm2.max()  # a load with no static response here (active tension on a flat patch)
+    V = V[:, nonzero] / np.sqrt(norm2[nonzero])
     for tol in (1e-12, 0.0):  # M0-orthonormalise twice ("twice is enough"); drop dependent statics once
         G = V.T @ (M0 @ V)
         w, U = np.linalg.eigh(0.5 * (G + G.T))

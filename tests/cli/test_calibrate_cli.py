@@ -314,8 +314,8 @@ def test_synthetic_too_few_views(tmp_path, syn_set, syn_target):
     out_dir = tmp_path / "out"
     res = _run("calibrate", folder, "--target", syn_target, "-o", out_dir / "rig.yaml", "--json")
     assert res.exit_code == 1, res.output
-    assert (f"calibration failed: too few usable views: cam0 {SYN_VIEWS}, cam1 3, cam2 3 (at least 4 per camera "
-            f"needed); no rig file written") in res.stderr
+    assert (f"calibration failed with the target {syn_target}: too few usable views: cam0 {SYN_VIEWS}, cam1 3, "
+            f"cam2 3 (at least 4 per camera needed); no rig file written") in res.stderr
     assert "02.png: empty file" in res.stderr and res.stdout == ""
     _assert_nothing_written(out_dir)
 

@@ -144,11 +144,16 @@ def test_ukf_kappa_must_leave_a_positive_spread(paper_dict):
 
 
 @pytest.mark.parametrize("reduction", [None, {"modes": 500, "static_nu": [0.3, 0.3]}])
-def test_smallest_mesh_builds(reduction):
-    """One free node column (grid [3, 3, 2]: 6 free DOFs); reduction.modes is capped at free DOFs - 2."""
-    d = {"geometry": {"grid": [3, 3, 2]}, "inputs": {"active_tension": {"t_max": 1000.0}}, "reduction": reduction}
+@pytest.mark.parametrize("radius, width", [(0.08, 0.04), (None, 0.00026762107709657967)])
+def test_smallest_mesh_builds(reduction, radius, width):
+    """One free node column (grid [3, 3, 2]: 6 free DOFs); reduction.modes is capped at free DOFs - 2; on the flat
+    patch the active tension load is zero (exactly, at this width: a fuzz finding), and its static response is
+    dropped from the basis instead of being divided by its zero norm."""
+    d = {"geometry": {"grid": [3, 3, 2], "width": width, "radius_long": radius, "radius_circ": radius},
+         "inputs": {"active_tension": {"t_max": 1000.0}}, "reduction": reduction}
     cfg = model_config_from_dict(d)
-    m = build_model(cfg)
+    with np.errstate(invalid="raise", divide="raise"):
+        m = build_model(cfg)
     assert m.free_dofs.size == 6 and m.r <= 6
     sys = m.system(cfg.theta)
     assert np.isfinite(sys.A).all() and m.default_points().shape == (1, 3)
@@ -187,3 +192,13 @@ def test_integrated_noise_stiff_and_plain_van_loan():
     E = sla.expm(Z * dt)
     ref = E[2:, 2:].T @ E[:2, 2:]
     np.testing.assert_allclose(integrated_noise(F2, Qc, dt), 0.5 * (ref + ref.T), rtol=1e-12, atol=1e-18)
+
+
+def test_ritz_basis_drops_zero_static_responses(paper_model):
+    from heartcv.tracker.model import _ritz_basis
+
+    fe, free = paper_model.fe, paper_model.free_dofs
+    loads = np.column_stack([fe.f_pressure[free], np.zeros(free.size)])
+    with np.errstate(invalid="raise", divide="raise"):
+        V = _ritz_basis(fe, free, loads, paper_model.config.theta, 10, (0.3, 0.45), fe.volume)
+    assert V.shape == (free.size, 12) and np.isfinite(V).all()  # 10 modes + 2 responses to the pressure
