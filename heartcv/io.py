@@ -243,8 +243,8 @@ def read_target(path) -> TargetSpec:
         raise HeartcvIOError(path, "a mapping expected", "image")
     try:
         return TargetSpec.from_dict(d)
-    except ValueError as exc:  # TargetSpec's checks of the values it is given (InputError or ValueError)
-        raise HeartcvIOError(path, str(exc)) from None
+    except InputError as exc:  # TargetSpec's checks of the values it is given
+        raise exc.in_file(path) from None
 
 
 # =====================================================================================================================
@@ -540,7 +540,7 @@ def read_scene(path):
     try:
         return scene_from_dict(d)
     except SceneError as exc:
-        raise HeartcvIOError(path, str(exc)) from None
+        raise exc.in_file(path) from None
 
 
 def scene_file_path(scene_path, relative) -> Path:

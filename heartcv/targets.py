@@ -367,6 +367,7 @@ def board_extent_m(spec: TargetSpec, margin_m: float = 0.0) -> tuple[float, floa
 
 
 DEFAULT_TEXTURE_PX_PER_M = 20000.0  # 50 um texels: 0.56 px of the default rig (89 um per pixel at the heart)
+MAX_TEXTURE_TEXELS = 40e6  # renderer textures (board, phantom): at most 40 Mtexels (float32: 160 MB per channel)
 
 
 def board_reflectance(spec: TargetSpec, xy_board_m, *, px_per_m: float | None = None, margin_m: float = 0.01,
@@ -398,7 +399,9 @@ def board_reflectance(spec: TargetSpec, xy_board_m, *, px_per_m: float | None = 
     if interpolation not in ("bilinear", "nearest"):
         raise ValueError(f"interpolation: 'bilinear' or 'nearest' expected, got {interpolation!r}")
     if px_per_m is None:
-        px_per_m = exact_px_per_m(spec, DEFAULT_TEXTURE_PX_PER_M)
+        # 50 um texels, coarser for boards so large that the texture would pass MAX_TEXTURE_TEXELS (memory bound)
+        w, h = spec.board_size_m
+        px_per_m = exact_px_per_m(spec, min(DEFAULT_TEXTURE_PX_PER_M, math.sqrt(MAX_TEXTURE_TEXELS / (w * h))))
     tex = board_texture(spec, px_per_m)
     H, W = tex.shape
     x0, y0 = spec.squares_origin_m

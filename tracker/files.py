@@ -439,6 +439,8 @@ def parse_yaml(text: str, path=None):
         raise InputError(path, f"not valid YAML: {str(exc)[:400]}") from None
     except RecursionError:
         raise InputError(path, "refused: the YAML document is nested too deeply") from None
+    except ValueError as exc:  # construction of a scalar: an integer of more than 4300 digits (Python's limit)
+        raise InputError(path, f"not a valid YAML value: {str(exc)[:200]}") from None
     finally:
         loader.dispose()
 

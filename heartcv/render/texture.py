@@ -20,6 +20,9 @@ import math
 
 import numpy as np
 
+from ..targets import MAX_TEXTURE_TEXELS
+from ..tracker.files import InputError
+
 __all__ = ["Texture", "make_texture", "fiducial_grid"]
 
 
@@ -168,6 +171,9 @@ def make_texture(spec, sigma_range, period_m, rng: np.random.Generator, fiducial
     s_lo, s_hi = sigma_range
     H = int(math.ceil((s_hi - s_lo) / texel)) + 2
     W = int(round(period_m / texel))
+    if H * W > MAX_TEXTURE_TEXELS:  # memory bound: the texture and its intermediates are float32 (H, W, 3)
+        raise InputError(None, f"a texture of {H} x {W} texels for this phantom (more than {MAX_TEXTURE_TEXELS:.0e}); "
+                               "use larger texels", "texture.texel_m")
     texel_t = period_m / W
     s0 = s_lo - texel
     shape = (H, W)
