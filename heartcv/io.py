@@ -71,6 +71,16 @@ def _check_format(path, d, fmt, required=False):
     check_format(path, d, fmt, required)
 
 
+def _read_typed_yaml(path, what: str, fmt, from_dict):
+    """``from_dict(d)`` of a YAML file of format ``fmt``; the InputError of ``from_dict`` gets the file attached."""
+    d = read_yaml(path, what)
+    _check_format(path, d, fmt)
+    try:
+        return from_dict(d)
+    except InputError as exc:
+        raise exc.in_file(path) from None
+
+
 # =====================================================================================================================
 # Images
 # =====================================================================================================================
@@ -237,14 +247,12 @@ def write_target(path, spec: TargetSpec, *, png=None, pdf=None, px_per_m=None, i
 
 def read_target(path) -> TargetSpec:
     """Read and validate a target file; HeartcvIOError naming the file and the bad field."""
-    d = read_yaml(path, "target file")
-    _check_format(path, d, TARGET_FORMAT)
-    if "image" in d and not isinstance(d["image"], dict):
-        raise HeartcvIOError(path, "a mapping expected", "image")
-    try:
+    def from_dict(d):
+        if "image" in d and not isinstance(d["image"], dict):
+            raise InputError(None, "a mapping expected", "image")
         return TargetSpec.from_dict(d)
-    except InputError as exc:  # TargetSpec's checks of the values it is given
-        raise exc.in_file(path) from None
+
+    return _read_typed_yaml(path, "target file", TARGET_FORMAT, from_dict)
 
 
 # =====================================================================================================================
@@ -396,12 +404,7 @@ def write_rig(path, rig: Rig) -> None:
 
 def read_rig(path) -> Rig:
     """Read and validate a rig file; HeartcvIOError naming the file and the bad field."""
-    d = read_yaml(path, "rig file")
-    _check_format(path, d, RIG_FORMAT)
-    try:
-        return rig_from_dict(d)
-    except InputError as exc:
-        raise exc.in_file(path) from None
+    return _read_typed_yaml(path, "rig file", RIG_FORMAT, rig_from_dict)
 
 
 # =====================================================================================================================
@@ -533,14 +536,9 @@ __all__ += ["SCENE_FORMAT", "RENDER_TRUTH_FORMAT", "read_scene", "scene_file_pat
 
 def read_scene(path):
     """Read and validate a scene file (``heartcv.render.scene``); HeartcvIOError naming the file and the field."""
-    from .render.scene import SceneError, scene_from_dict
+    from .render.scene import scene_from_dict
 
-    d = read_yaml(path, "scene file")
-    _check_format(path, d, SCENE_FORMAT)
-    try:
-        return scene_from_dict(d)
-    except SceneError as exc:
-        raise exc.in_file(path) from None
+    return _read_typed_yaml(path, "scene file", SCENE_FORMAT, scene_from_dict)
 
 
 def scene_file_path(scene_path, relative) -> Path:
