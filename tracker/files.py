@@ -33,6 +33,7 @@ from pathlib import Path
 import re
 import shutil
 import tempfile
+import tokenize
 import zipfile
 import zlib
 
@@ -645,7 +646,8 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path, max_bytes: in
                 shape, fortran, dtype = fmt.read_array_header_2_0(f, max_header_size=LIMITS["npy_header_bytes"])
             else:
                 raise ValueError(f"unsupported .npy version {version}")
-        except (ValueError, EOFError, OSError, SyntaxError, TypeError, zipfile.BadZipFile, zlib.error) as exc:
+        except (ValueError, EOFError, OSError, SyntaxError, TypeError, zipfile.BadZipFile, zlib.error,
+                tokenize.TokenError) as exc:  # numpy tokenizes old-style headers (tokenize.TokenError)
             raise InputError(path, f"not a valid .npy header ({_short(str(exc), 120)})", name) from None
         if dtype.hasobject:
             raise InputError(path, "holds Python objects (a pickle); heartcv files hold numbers and text only", name)

@@ -389,3 +389,13 @@ def test_input_error_pickles_and_two_outputs_need_two_paths(tmp_path):
         F.refuse_overlap({"-o": tmp_path / "a.npz", "--truth": tmp_path / "." / "a.npz"}, {})
     F.write_npz(tmp_path / "m.npz", FMT, {"times": np.arange(2.0)}, {"x": 1})
     assert F.read_npz_meta(tmp_path / "m.npz")["x"] == 1
+
+
+def test_a_header_numpy_cannot_tokenize_is_an_input_error(tmp_path):
+    """Found by the fuzz run (NUL bytes inside an .npy header): numpy's header parser raised tokenize.TokenError."""
+    hdr = b"{'descr': '<f8', 'fortran_order': False, 'shape': (3,\x00\x00\n"
+    raw = b"\x93NUMPY\x01\x00" + len(hdr).to_bytes(2, "little") + hdr + b"\0" * 24
+    p = _npz(tmp_path / "tok.npz", {"positions": np.zeros((3, 1, 3)), "ids": np.arange(1)},
+             raw_members={"times.npy": raw})
+    with pytest.raises(InputError, match="times: not a valid .npy header"):
+        F.read_npz(p, FMT, _SCHEMA)
