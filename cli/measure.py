@@ -92,7 +92,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     count = source.n_frames if frames is None else min(frames, source.n_frames)
     if count < 2:
         raise BadInput(f"{sequence}: {count} frame(s); at least 2 expected")
-    _check_sizes(source, rig, count)
+    _check_sizes(source, rig, count, rig_file)
     times = _frame_times(source, fps, count)
     stamps = seq / "timestamps.csv" if fps is None and (seq / "timestamps.csv").is_file() else None
     in_names, in_units, in_values = _inputs(inputs_path, times, required=inputs_file is not None, times_from=stamps)
@@ -103,7 +103,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
 
     t_start = time.perf_counter()
     with FrameReader(source, sizes=[c.size for c in rig.cameras], frames=range(count), workers=workers) as reader:
-        run = _run(ctx, reader, rig, opts, roi, be, count, sequence)
+        run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file)
     wall = time.perf_counter() - t_start
     res = run.result
     mset = _measurement_set(res, times, (in_names, in_units, in_values), be.name, source, count, ref, highpass,
@@ -131,7 +131,7 @@ def _guard(output, csv_file, inputs):
 
 
 # -- inputs ------------------------------------------------------------------------------------------------------
-def _check_sizes(source, rig, count):
+def _check_sizes(source, rig, count, rig_file):
     """Exit 2 if a camera's first readable image does not have the rig's image size (the rig does not belong to
     the images)."""
     from heartcv.io import FrameReader
@@ -141,7 +141,7 @@ def _check_sizes(source, rig, count):
         return source.files[c][k if source.kind == "images" else 0]
 
     with FrameReader(source, frames=range(count), workers=1) as reader:
-        check_image_sizes(rig.cameras, reader.read, count, locate)
+        check_image_sizes(rig.cameras, reader.read, count, locate, f"the rig {rig_file}")
 
 
 def _frame_times(source, fps, count):
@@ -183,13 +183,14 @@ def _mask(mask_file, size):
 
 
 def _truth(truth_file, count, names):
+    from heartcv.evaluate import TRUTH_FOR_ERRORS
     from heartcv.io import read_render_truth
     from heartcv.measure_data import truth_for_frames
     from heartcv.tracker.files import InputError
 
     if truth_file is None:
         return None
-    arrays, meta = read_render_truth(truth_file)
+    arrays, meta = read_render_truth(truth_file, require=TRUTH_FOR_ERRORS, what="the truth error of measure")
     try:
         return truth_for_frames(arrays, meta, count, names)
     except InputError as exc:
@@ -220,7 +221,7 @@ def _options(ref, max_points, pixel_sigma, min_distance, corner_block, corner_qu
 
 
 # -- the stage -----------------------------------------------------------------------------------------------------
-def _run(ctx, reader, rig, opts, roi, backend, count, sequence):
+def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file):
     """:func:`heartcv.measure.measure_sequence` over the reader, with a progress bar; its problems as warnings."""
     from heartcv.measure import MeasureFailed, measure_sequence, reference_frames
     from heartcv.tracker.files import InputError
@@ -233,7 +234,7 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence):
     except InputError as exc:
         raise exc.in_file(sequence) from None
     except MeasureFailed as exc:
-        raise StageFailed(f"{sequence}: {exc}; check the rig, the mask or the images") from None
+        raise StageFailed(f"{sequence}: {exc}; check the rig ({rig_file}), the mask or the images") from None
     for k, msg in run.problems:
         log.warning("frame %d: %s; left out", k, msg)
     if run.skipped:

@@ -230,6 +230,13 @@ def _render_truth(truth, data, meta, path, runs, allow_mixed, meas_file) -> None
     for key in ("times", "theta"):
         if key not in data:
             raise InputError(path, "required for a sequence truth, missing", key)
+    if "vertex_positions" in data:
+        from heartcv.evaluate import TRUTH_FOR_ERRORS
+
+        missing = [k for k in TRUTH_FOR_ERRORS if k not in data]
+        if missing:
+            raise InputError(path, f"missing arrays {missing} (a truth with vertex positions needs them for the "
+                                   "truth error)")
     truth.update(kind="render", times=data["times"], theta=data["theta"])
     for r in runs.values():
         _mismatch(r["est"].times, data["times"], r["path"], path, allow_mixed, "the truth")

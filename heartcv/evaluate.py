@@ -17,7 +17,7 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["TruthErrors", "truth_errors", "occluded_observations", "rigid_fit", "displacement_consistency"]
+__all__ = ["TRUTH_FOR_ERRORS", "TruthErrors", "truth_errors", "occluded_observations", "rigid_fit", "displacement_consistency"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,9 @@ class TruthErrors:
     truth_from_rig: np.ndarray | None = None
     true_positions: np.ndarray | None = None
 
+
+#: The render-truth arrays :func:`truth_errors` reads (docs/formats.md §11.2)
+TRUTH_FOR_ERRORS = ("K", "dist", "cam_from_world", "image_size", "faces", "vertex_positions")
 
 def _true_camera(truth, c) -> Camera:
     W, H = (int(v) for v in truth["image_size"])

@@ -621,10 +621,17 @@ def _check_rigid(T, path, field):
         raise InputError(path, "rigid transforms (rotation, translation, last row 0 0 0 1) expected", field)
 
 
-def read_render_truth(path) -> tuple[dict, dict]:
+def read_render_truth(path, require=(), what: str | None = None) -> tuple[dict, dict]:
     """``(arrays, meta)`` of a render truth file, validated against docs/formats.md §11 (dtypes, shapes that agree,
-    finite values, face indices inside the mesh); InputError naming the file and the array."""
+    finite values, face indices inside the mesh, rigid poses, camera matrices); InputError naming the file and the
+    array. ``require`` names the arrays the caller needs (``what`` says for what, in the message)."""
     data, meta = read_npz(path, RENDER_TRUTH_FORMAT, _RENDER_TRUTH_SCHEMA)
+    kind = get_field(meta, "kind", "str", path, default=None, prefix="meta.")
+    if kind is not None and kind not in ("calibration", "sequence"):
+        raise InputError(path, f"'calibration' or 'sequence' expected, got {kind[:40]!r}", "meta.kind")
+    missing = [k for k in require if k not in data]
+    if missing:
+        raise InputError(path, f"missing arrays {missing} ({what or 'needed here'})")
     if "K" in data:
         K = data["K"]
         if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any() or np.abs(K[:, 2] - [0, 0, 1]).max(initial=0) > 0 \

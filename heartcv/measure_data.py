@@ -84,7 +84,7 @@ def inputs_at_frames(columns: dict, times) -> tuple[tuple, tuple, np.ndarray]:
     return tuple(names), tuple(units), np.stack(vals, axis=1) if vals else np.zeros((times.size, 0))
 
 
-def check_image_sizes(cameras, read, count: int, locate) -> None:
+def check_image_sizes(cameras, read, count: int, locate, rig_name: str = "the rig") -> None:
     """Check that every camera's first readable image has the rig's image size for that camera.
 
     Parameters
@@ -113,7 +113,7 @@ def check_image_sizes(cameras, read, count: int, locate) -> None:
             cam, (h, w) = cameras[c], images[c].shape[:2]
             if (w, h) != tuple(cam.size):
                 raise InputError(locate(c, k), f"image is {w}x{h} px, but the rig's camera {cam.name} is "
-                                               f"{cam.width}x{cam.height}: the rig does not belong to these images")
+                                               f"{cam.width}x{cam.height}: {rig_name} does not belong to these images")
     if pending:
         raise InputError(None, f"none of the {count} images of camera {cameras[pending[0]].name} can be read",
                          "images")

@@ -92,11 +92,13 @@ class TargetSpec:
             raise InputError(None, f"{what}: at least 3 each way for a {self.type}, got {sq[0]}x{sq[1]}", key)
         if max(sq) > MAX_SQUARES:
             raise InputError(None, f"{what}: at most {MAX_SQUARES} each way, got {sq[0]}x{sq[1]}", key)
-        if not (_is_real(self.square_m) and 0 < self.square_m < 1):
-            raise InputError(None, f"square size: metres in (0, 1) expected, got {_show(self.square_m)}", "square_m")
+        if not (_is_real(self.square_m) and 1e-4 <= self.square_m < 1):
+            raise InputError(None, f"square size: metres in [0.0001, 1) expected, got {_show(self.square_m)}",
+                             "square_m")
         if self.type == "charuco":
-            if not (_is_real(self.marker_m) and 0 < self.marker_m < self.square_m):
-                raise InputError(None, f"marker size: 0 < marker < square ({self.square_m} m) expected, "
+            # a marker below a tenth of its square cannot be printed or detected (OpenCV's boards use 0.5-0.8)
+            if not (_is_real(self.marker_m) and 0.1 * self.square_m <= self.marker_m < self.square_m):
+                raise InputError(None, f"marker size: 0.1 square <= marker < square ({self.square_m} m) expected, "
                                        f"got {_show(self.marker_m)}", "marker_m")
             if not isinstance(self.dictionary, str) or self.dictionary not in DICTIONARIES:
                 raise InputError(None, f"one of {DICTIONARIES} expected, got {_show(self.dictionary)}", "dictionary")
