@@ -17,7 +17,8 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["TRUTH_FOR_ERRORS", "TruthErrors", "truth_errors", "occluded_observations", "rigid_fit", "displacement_consistency"]
+__all__ = ["TRUTH_FOR_ERRORS", "TruthErrors", "truth_errors", "occluded_observations", "rigid_fit",
+           "displacement_consistency"]
 
 
 @dataclass(frozen=True)
