@@ -56,6 +56,9 @@ SAMPLES = ROOT / "sample_sequences"
 READERS = ("model", "measurements", "estimates", "truth", "parameters", "rig", "target", "scene", "inputs.csv",
            "timestamps.csv")
 CASE_LIMIT_S = 10.0                 # a case running longer is a failure ('slow')
+# a valid scene renders at its default size (1920x1080, 30 s a frame on 2 loaded cores) when a mutation deletes
+# rig.image_size: not a hang, so scenes get a longer limit
+READER_LIMIT_S = {"scene": 90.0}
 MEMORY_HEADROOM = 4 << 30           # address space a case may add to the (forked) parent's, bytes
 OUTPUT_TAIL = 2000                  # characters kept of the start and of the end of a case's output
 
@@ -1359,6 +1362,8 @@ def run_reader(reader, n, seed=0, *, seeds: Seeds, workdir, budget_s=None, jobs=
     ``keep_failures`` failures are kept in ``workdir/failures``."""
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
+    if limit_s == CASE_LIMIT_S:
+        limit_s = READER_LIMIT_S.get(reader, limit_s)
     jobs = jobs or max(1, min(2, os.cpu_count() or 1))
     warm_imports()
     check_seeds(reader, seeds, workdir / "seeds")
