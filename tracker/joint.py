@@ -31,7 +31,7 @@ from .measurements import EstimateSet, MeasurementSet
 from .model import PatchModel
 from .params import NAMES, ParameterSpace
 from .sampling import sample
-from .tracking import EstimationDiverged, ObservedPoints, _block_diag_R, frame_interval, locate_points
+from .tracking import EstimationDiverged, ObservedPoints, _block_diag_R, run_setup
 from .transition import TransitionFamily
 from .truncation import SKIP_SIGMA, truncate_box
 
@@ -360,12 +360,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: one of {ESTIMATORS} expected, got {estimator!r}")
     options = options or JointOptions.from_config(model.config)
-    pts = points or locate_points(model, meas)
-    obs = pts.observation
-    u = meas.input_columns(model.input_names)
-    trans = meas.translation()
-    K = meas.n_frames
-    dt = frame_interval(model, meas)
+    pts, obs, u, trans, K, dt = run_setup(model, meas, points)
     prior = joint_prior(model, u[0], theta0, prior_std)
     space = prior.space
     M = space.dim

@@ -110,16 +110,19 @@ def _block_diag_R(cov_k: np.ndarray) -> np.ndarray:
     return R.reshape(3 * P, 3 * P)
 
 
+def run_setup(model: PatchModel, meas: MeasurementSet, points: ObservedPoints | None = None):
+    """What every estimator run over ``meas`` starts from: ``(points, observation, inputs (K, n_u), translation
+    (K, 3), K, dt)`` (:func:`locate_points`, :func:`frame_interval`)."""
+    pts = points or locate_points(model, meas)
+    return (pts, pts.observation, meas.input_columns(model.input_names), meas.translation(), meas.n_frames,
+            frame_interval(model, meas))
+
+
 def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=False,
                points: ObservedPoints | None = None) -> EstimateSet:
     """Kalman filter with fixed ``theta`` (default: the model file's) over a measurement set."""
     theta = model.config.theta if theta is None else np.asarray(theta, float)
-    pts = points or locate_points(model, meas)
-    obs = pts.observation
-    u = meas.input_columns(model.input_names)
-    trans = meas.translation()
-    K = meas.n_frames
-    dt = frame_interval(model, meas)
+    pts, obs, u, trans, K, dt = run_setup(model, meas, points)
     sysd = model.system(theta, dt)
     Q = model.process_noise(theta, dt)
     n = model.state_dim
