@@ -1,4 +1,4 @@
-"""``python -m benchmarks {model,discretise,kf,estimators,fit,render,measure,all} [--json PATH] [--quick]``."""
+"""``python -m benchmarks {model,discretise,kf,estimators,fit,render,measure,files,all} [--json PATH] [--quick]``."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import time
 
 from ._harness import environment
 from .estimators import bench_estimators
+from .files import bench_files
 from .fit import bench_fit
 from .measure import bench_measure
 from .model import SECTIONS as _MODEL_SECTIONS
@@ -18,8 +19,8 @@ from .model import blas_report
 from .render import bench_render
 
 SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators, "fit": bench_fit, "render": bench_render,
-            "measure": bench_measure}
-ORDER = ("model", "discretise", "kf", "estimators", "fit", "render", "measure")
+            "measure": bench_measure, "files": bench_files}
+ORDER = ("model", "discretise", "kf", "estimators", "fit", "render", "measure", "files")
 
 
 def _json_default(o):
