@@ -26,6 +26,7 @@ import numbers
 import numpy as np
 
 from .tracker.files import InputError
+from .tracker.files import show as _show
 
 __all__ = ["TargetSpec", "TARGET_TYPES", "DICTIONARIES", "INCH_M", "exact_px_per_m", "board_texture",
            "render_board", "board_reflectance", "board_extent_m"]
@@ -218,19 +219,6 @@ class TargetSpec:
             raise InputError(None, f"a list [cols, rows] expected, got {_show(sq)}", key)
         return cls(typ, tuple(sq), d["square_m"], d.get("marker_m"), d.get("dictionary"),
                    d.get("legacy_pattern", False), d.get("name", "target"))
-
-
-def _show(v, n: int = 80) -> str:
-    """``repr`` of a value for a message, cut to ``n`` characters (a huge integer by its size)."""
-    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 64:
-        return f"an integer of about {'-' if v < 0 else ''}10^{int(v.bit_length() * 0.30103)}"
-    if isinstance(v, (list, tuple)) and len(v) > 16:
-        return f"a list of {len(v)} entries"
-    try:
-        r = repr(v)
-    except ValueError:  # an integer too long to print, nested in a list
-        r = f"<{type(v).__name__}>"
-    return r if len(r) <= n else r[: n - 4] + " ..."
 
 
 def _is_int(v) -> bool:

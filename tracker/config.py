@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from .files import InputError
+from .files import show as _show
 from .geometry import PatchGeometry
 from .params import DEFAULT_BOUNDS, NAMES, ParameterSpace
 
@@ -158,19 +159,6 @@ class ModelConfig:
 
 
 # ---------------------------------------------------------------------------------------------
-def _show(v, n: int = 80) -> str:
-    """``repr`` of a value for a message, cut to ``n`` characters (a huge integer by its size)."""
-    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 64:
-        return f"an integer of about {'-' if v < 0 else ''}10^{int(v.bit_length() * math.log10(2))}"
-    if isinstance(v, (list, tuple)) and len(v) > 8:
-        return f"a list of {len(v)} entries"
-    try:
-        r = repr(v)
-    except ValueError:  # an integer too long to print, nested in a list
-        r = f"<{type(v).__name__}>"
-    return r if len(r) <= n else r[: n - 4] + " ..."
-
-
 def _is_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 

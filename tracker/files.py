@@ -43,7 +43,7 @@ __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
-    "read_npz_meta", "check_provenance",
+    "read_npz_meta", "check_provenance", "show",
     "write_npz", "read_csv_table", "get_matrix",
 ]
 
@@ -525,10 +525,21 @@ def check_format(path, d, fmt: tuple, required: bool = True) -> None:
         raise InputError(path, f"{fmt[1]} supported, got {_short(d.get('format_version'))}", "format_version")
 
 
-def _short(v, n: int = 80) -> str:
-    """``repr`` of a value cut to ``n`` characters (messages never print a whole file)."""
-    r = repr(v)
-    return r if len(r) <= n else r[: n - 5] + " ...]"
+def show(v, n: int = 80) -> str:
+    """``repr`` of a value for a message, cut to ``n`` characters: messages never print a whole file (a huge
+    integer is given by its size, a long list by its length)."""
+    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 64:
+        return f"an integer of about {'-' if v < 0 else ''}10^{int(v.bit_length() * math.log10(2))}"
+    if isinstance(v, (list, tuple)) and len(v) > 16:
+        return f"a list of {len(v)} entries"
+    try:
+        r = repr(v)
+    except ValueError:  # an integer too long to print, nested in a list
+        r = f"<{type(v).__name__}>"
+    return r if len(r) <= n else r[: n - 4] + " ..."
+
+
+_short = show
 
 
 _KINDS = {"str": str, "bool": bool, "int": int, "float": float, "list": list, "dict": dict}

@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from ..tracker.files import InputError
+from ..tracker.files import show as _show
 from .rig import build_rig, default_world_from_patch, ring_poses
 
 __all__ = ["SceneError", "Scene", "scene_from_dict", "build_rig", "ring_poses", "default_world_from_patch",
@@ -199,19 +200,6 @@ class Scene:
 
 
 # -- validation --------------------------------------------------------------------------------------
-def _show(v, n: int = 80) -> str:
-    """``repr`` of a value for a message, cut to ``n`` characters (a huge integer by its size)."""
-    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 64:
-        return f"an integer of about {'-' if v < 0 else ''}10^{int(v.bit_length() * math.log10(2))}"
-    if isinstance(v, (list, tuple)) and len(v) > 16:
-        return f"a list of {len(v)} entries"
-    try:
-        r = repr(v)
-    except ValueError:  # an integer too long to print, nested in a list
-        r = f"<{type(v).__name__}>"
-    return r if len(r) <= n else r[: n - 4] + " ..."
-
-
 def _as_float(v):
     """A finite float of a YAML number (or numeric string), or None."""
     if isinstance(v, str):  # PyYAML reads 1.0e-5 (no sign after e) as a string
