@@ -20,6 +20,7 @@ from .options import MAX_COUNT, BadInput, Float, Int, StageFailed, emit_json, gu
 log = logging.getLogger(__name__)
 
 PRODUCER = "heartcv calibrate"
+REPORT_PRODUCER = "heartcv calibrate --report"
 MAX_JOBS = 1024
 
 
@@ -41,9 +42,25 @@ MAX_JOBS = 1024
               help="Usable views needed per camera.")
 @click.option("--jobs", type=Int(1, MAX_JOBS), default=None,
               help="Detection threads (default: the number of CPUs, at most 8).")
+@click.option("--intrinsics", "intrinsics_file", type=click.Path(dir_okay=False), default=None, metavar="RIG.yaml",
+              help="Intrinsics of an earlier or imported calibration (`heartcv rig import`): the start of the cameras "
+                   "it names (matched by name), or kept with --hold.")
+@click.option("--hold", default=None, metavar="all|CAM,...",
+              help="Keep the --intrinsics of these cameras (all: every camera): only poses are estimated.")
+@click.option("--timestamps", "timestamps_file", type=click.Path(dir_okay=False), default=None, metavar="CSV",
+              help="Per-camera frame times of unsynchronised cameras (default: FOLDER/timestamps.csv when present; "
+                   "else the videos' own timestamps when they differ between cameras).")
+@click.option("--intrinsic-views", "intrinsic_folder", type=click.Path(file_okay=False), default=None,
+              metavar="DIR", help="Recordings seen by one camera each (DIR/CAM/ images or DIR/CAM.mp4, named like "
+                                  "the cameras): used for that camera's intrinsics.")
+@click.option("--folds", type=Int(0, 100), default=5, show_default=True,
+              help="k of the k-fold check of the uncertainties (0: none).")
+@click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, metavar="DIR",
+              help="Write a calibration report (PNGs + index.html) to DIR.")
 @json_opt
 @click.pass_context
-def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, min_views, jobs, as_json):
+def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, min_views, jobs, intrinsics_file,
+              hold, timestamps_file, intrinsic_folder, folds, report_dir, as_json):
     """Calibrate the cameras of FOLDER: intrinsics, distortion and cam_from_rig of every camera, in the frame
     of the first camera, from views of the target in TARGET.
 
@@ -59,32 +76,177 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     from heartcv.io import read_target
 
     out = Path(output)
-    exports = _guard(out, folder, target_file)
+    inputs = {"--intrinsics": intrinsics_file, "--timestamps": timestamps_file,
+              "--intrinsic-views": intrinsic_folder}
+    exports = _guard(out, folder, target_file, {k: v for k, v in inputs.items() if v}, report_dir)
     spec = read_target(target_file)
     cameras = _find_cameras(Path(folder))
+    names = [c[0] for c in cameras]
+    given, held = _given_intrinsics(intrinsics_file, hold, names)
+    extra = _find_intrinsic_views(intrinsic_folder, names)
+    infos = _check_videos(cameras + [e for e in extra if e[1] == "video"])
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     jobs = jobs or min(os.cpu_count() or 1, 8)
-    names = [c[0] for c in cameras]
     detections, sizes, view_names, used_files = _detect_all(cameras, spec, every, jobs, verbosity)
-    rig = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views,
-                     target_file)
+    times = _frame_times(timestamps_file, Path(folder), cameras, infos, every, len(view_names))
+    if extra:
+        detections, view_names, more = _append_intrinsic_views(detections, view_names, extra, names, spec, jobs,
+                                                               verbosity)
+        used_files = sorted(set(used_files) | set(more))
+        if times is not None:
+            import numpy as np
+
+            times = np.concatenate([times, np.full((len(names), len(view_names) - times.shape[1]), np.nan)], 1)
+    cal = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views,
+                     target_file, given=given, hold=held, times=times, folds=folds)
+    rig = cal.rig
     rig = type(rig)(rig.cameras, dict(rig.meta, producer=PRODUCER,
                                       inputs_hash=_inputs_hash(target_file, used_files)))
-    _summarise(rig, output, _write(out, rig, **exports), as_json)
+    for msg in rig.meta["warnings"]:
+        log.warning("%s", msg)
+    written = _write(out, rig, **exports)
+    if report_dir:
+        from .calibration_report import write_calibration_report
+
+        cal = type(cal)(rig, cal.rig_from_board, cal.used, cal.view_rms)
+        written["report"] = str(write_calibration_report(Path(report_dir), cal, detections, spec,
+                                                         title=f"heartcv calibrate: {out.name}",
+                                                         warnings=rig.meta["warnings"]).get("index", report_dir))
+    _summarise(rig, output, written, as_json)
 
 
-def _guard(out: Path, folder, target_file) -> dict:
+def _guard(out: Path, folder, target_file, more_inputs=None, report_dir=None) -> dict:
     """The export paths beside the rig file; exit 2, before any work, for a rig file that is not YAML, an output
-    that is or contains FOLDER or the target, or one that would replace what heartcv did not write."""
+    that is or contains an input, or one that would replace what heartcv did not write."""
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {out}")
     stem = out.with_suffix("")
     colmap, kalibr = stem.parent / f"{stem.name}_colmap", stem.parent / f"{stem.name}_camchain.yaml"
     labels = {"-o/--output": out, "COLMAP export": colmap, "Kalibr export": kalibr}
-    guard_outputs(labels, {"FOLDER": folder, "--target": target_file},
-                  files=[("-o/--output", out), ("Kalibr export", kalibr)],
-                  folders=[("COLMAP export", colmap, PRODUCER)])
+    folders = [("COLMAP export", colmap, PRODUCER)]
+    if report_dir:
+        labels["--report"] = Path(report_dir)
+        folders.append(("--report", Path(report_dir), REPORT_PRODUCER))
+    guard_outputs(labels, {"FOLDER": folder, "--target": target_file, **(more_inputs or {})},
+                  files=[("-o/--output", out), ("Kalibr export", kalibr)], folders=folders)
     return {"colmap": colmap, "kalibr": kalibr}
+
+
+def _given_intrinsics(path, hold, names):
+    """Per camera (K, dist) from --intrinsics (matched by name) or None, and the held mask; exit 2 for a --hold
+    without --intrinsics, or naming a camera that is not in FOLDER or not in the file."""
+    held = [False] * len(names)
+    if path is None:
+        if hold:
+            raise BadInput("--hold needs --intrinsics (the values to keep)")
+        return [None] * len(names), held
+    from heartcv.io import read_rig
+
+    rig = read_rig(path)
+    given = [(rig[n].K, rig[n].dist) if n in rig.names else None for n in names]
+    missing = [n for n, g in zip(names, given) if g is None]
+    if len(missing) == len(names):
+        raise BadInput(f"--intrinsics: {path} names none of the cameras of FOLDER ({', '.join(names)}; the file has "
+                       f"{', '.join(rig.names)}); name the videos or folders like the file's cameras")
+    if missing:
+        log.warning("--intrinsics: %s has no camera named %s: calibrated from the views", path, ", ".join(missing))
+    if hold:
+        want = names if hold.strip().lower() == "all" else [h.strip() for h in hold.split(",") if h.strip()]
+        unknown = [h for h in want if h not in names]
+        if unknown:
+            raise BadInput(f"--hold: no camera named {', '.join(unknown)} in FOLDER ({', '.join(names)})")
+        lacking = [h for h in want if given[names.index(h)] is None]
+        if lacking and hold.strip().lower() != "all":
+            raise BadInput(f"--hold: {path} has no intrinsics for {', '.join(lacking)}")
+        held = [n in want and given[i] is not None for i, n in enumerate(names)]
+    for i, n in enumerate(names):
+        if given[i] is not None:
+            cam = rig[n]
+            log.info("%s: intrinsics from %s (fx %.1f px)%s", n, path, cam.K[0, 0], ", held" if held[i] else "")
+    return given, held
+
+
+def _check_videos(cameras):
+    """Probe every video of the cameras before any processing (exit 2 naming a truncated or corrupt one);
+    {path: VideoInfo}."""
+    from heartcv.video import check_videos
+
+    paths = [c[2][0] for c in cameras if c[1] == "video"]
+    if not paths:
+        return {}
+    infos = check_videos(paths)
+    for info in infos:
+        log.info("%s: %d frames, %dx%d%s", info.path, info.n_frames, info.width, info.height,
+                 f", {info.fps:g} fps" if info.fps else "")
+    return {str(i.path): i for i in infos}
+
+
+def _frame_times(timestamps_file, folder, cameras, infos, every, n_views):
+    """Per-camera frame times (n_cam, n_views) of the instants used, or None (cameras taken as synchronised):
+    --timestamps, else FOLDER/timestamps.csv, else none (a video's own timestamps count only from its start, so
+    they cannot tell the cameras apart)."""
+    import numpy as np
+
+    from heartcv.video import read_camera_times
+
+    path = Path(timestamps_file) if timestamps_file else folder / "timestamps.csv"
+    if not path.is_file():
+        if timestamps_file:
+            from heartcv.tracker.files import InputError
+
+            raise InputError(path, "no such file", "--timestamps")
+        return None
+    if cameras[0][1] != "video":
+        raise BadInput(f"--timestamps: {path}: per-camera frame times apply to video input (image folders are "
+                       "matched by file name)")
+    names = [c[0] for c in cameras]
+    counts = [infos[str(c[2][0])].n_frames for c in cameras]
+    t = read_camera_times(path, names, counts)
+    times = np.full((len(names), n_views), np.nan)
+    for i, n in enumerate(names):
+        sel = np.asarray(t[n], float)[::every][:n_views]
+        times[i, :sel.size] = sel
+    log.info("frame times from %s: cameras up to %.1f ms apart at one instant", path,
+             1e3 * float(np.nanmax(np.nanmax(times, 0) - np.nanmin(times, 0))))
+    return times
+
+
+def _find_intrinsic_views(folder, names):
+    """[(camera name, kind, paths)] of --intrinsic-views DIR: DIR/CAM/ (images) or DIR/CAM.<video>."""
+    if folder is None:
+        return []
+    from heartcv.io import camera_entries
+    from heartcv.tracker.files import InputError
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "no such folder" if not folder.exists() else "not a folder", "--intrinsic-views")
+    images, videos = camera_entries(folder)
+    out = [(n, "images", fs) for n, fs in images] + [(v.stem, "video", [v]) for v in videos]
+    unknown = [e[0] for e in out if e[0] not in names]
+    if unknown:
+        raise InputError(folder, f"recordings named {', '.join(unknown)}, but the cameras are {', '.join(names)}",
+                         "--intrinsic-views")
+    if not out:
+        raise InputError(folder, "no image folder or video found", "--intrinsic-views")
+    return out
+
+
+def _append_intrinsic_views(detections, view_names, extra, names, spec, jobs, verbosity):
+    """Detections of the intrinsic recordings appended as views seen by one camera each."""
+    dets = [list(d) for d in detections]
+    view_names = list(view_names)
+    files = []
+    for name, kind, paths in extra:
+        c = names.index(name)
+        found, _, vnames, used = _detect_all([(name, kind, paths)], spec, 1, jobs, verbosity)
+        for v, d in enumerate(found[0]):
+            for k in range(len(dets)):
+                dets[k].append(d if k == c else None)
+            view_names.append(f"{name}:intrinsics/{vnames[v]}")
+        files += used
+        log.info("%s: %d intrinsic views", name, sum(d is not None and len(d) > 0 for d in found[0]))
+    return dets, view_names, files
 
 
 # -- inputs -----------------------------------------------------------------------------------------------------
@@ -150,41 +312,26 @@ def _read_and_detect(path, spec):
 
 
 def _detect_videos(cameras, spec, every, jobs, verbosity):
-    import cv2
-
+    """Detections in every ``every``-th frame of each camera's video (probed before: :func:`_check_videos`)."""
     from heartcv.detect import detect
-    from heartcv.tracker.files import InputError
+    from heartcv.video import iter_frames
 
-    results, counts = {}, []
+    results = {}
     with ThreadPoolExecutor(jobs) as pool:
-        for c, (_, _, (path,)) in enumerate(cameras):
-            cap = cv2.VideoCapture(str(path))
-            if not cap.isOpened():
-                raise InputError(path, "cannot open the video (unsupported or corrupt)")
-            k, batch = 0, []
-            try:
-                while True:
-                    ok, frame = cap.read()
-                    if not ok:
-                        break
-                    if k % every == 0:
-                        size = (frame.shape[1], frame.shape[0])
-                        batch.append((k // every, pool.submit(detect, frame, spec), size))
-                    k += 1
-                    if len(batch) >= 2 * jobs:
-                        for v, fut, size in batch:
-                            results[c, v] = (size, fut.result())
-                        batch = []
-                for v, fut, size in batch:
+        for c, (name, _, (path,)) in enumerate(cameras):
+            futures = []
+            for k, frame in iter_frames(path, every):
+                futures.append((k // every, (frame.shape[1], frame.shape[0]), pool.submit(detect, frame, spec)))
+            with progress(futures, f"detecting {name}", len(futures), verbosity) as it:
+                for v, size, fut in it:
                     results[c, v] = (size, fut.result())
-            finally:
-                cap.release()
-            counts.append(k)
-            log.info("%s: %d frames, %d used", path, k, (k + every - 1) // every)
-    if len(set(counts)) > 1:
-        log.warning("the videos have different frame counts (%s); frames are matched by index",
-                    ", ".join(f"{c[0]} {n}" for c, n in zip(cameras, counts)))
+            log.info("%s: target found in %d of %d frames used", name,
+                     sum(len(results[c, v][1]) > 0 for v, _, _ in futures), len(futures))
     n_views = max(v for _, v in results) + 1 if results else 0
+    per_cam = [sum(1 for cc, _ in results if cc == c) for c in range(len(cameras))]
+    if len(set(per_cam)) > 1:
+        log.warning("the videos have different frame counts (%s); frames are matched by index",
+                    ", ".join(f"{c[0]} {n}" for c, n in zip(cameras, per_cam)))
     names = [f"frame{v * every:06d}" for v in range(n_views)]
     paths = {(c, v): cameras[c][2][0] for c, v in results}
     return _assemble(cameras, names, results, paths)
@@ -213,9 +360,10 @@ def _inputs_hash(target_file, files):
 
 
 # -- calibration and outputs ------------------------------------------------------------------------------------
-def _calibrate(detections, spec, sizes, names, view_names, dist_size, max_view_rms, min_views, target_file):
+def _calibrate(detections, spec, sizes, names, view_names, dist_size, max_view_rms, min_views, target_file, *,
+               given, hold, times, folds):
     from heartcv.calibration import CalibrationError, usable_view
-    from heartcv.calibration_rig import calibrate_rig
+    from heartcv.calibration_rig import calibrate_rig_detailed
 
     if any(s is None for s in sizes):  # a camera without a single readable image
         counts = ", ".join(f"{n} {sum(usable_view(d, spec) for d in dets)}"
@@ -224,8 +372,10 @@ def _calibrate(detections, spec, sizes, names, view_names, dist_size, max_view_r
         raise StageFailed(f"calibration failed: too few usable views: {counts} (at least {min_views} per camera "
                           f"needed); no rig file written")
     try:
-        return calibrate_rig(detections, spec, sizes, names=names, view_names=view_names, dist_size=dist_size,
-                             max_view_rms=max_view_rms, min_views=min_views)
+        return calibrate_rig_detailed(detections, spec, sizes, names=names, view_names=view_names,
+                                      dist_size=dist_size, max_view_rms=max_view_rms, min_views=min_views,
+                                      given=given, hold=hold, times=times, folds=folds,
+                                      progress=lambda msg: log.info("%s", msg))
     except CalibrationError as exc:
         raise StageFailed(f"calibration failed with the target {target_file}: {exc}; no rig file written") from None
 
@@ -261,8 +411,12 @@ def _summarise(rig, output, exports, as_json):
         m = meta["cameras"][c.name]
         cams.append({"name": c.name, "rms_px": m["rms_px"], "fx": c.K[0, 0], "fy": c.K[1, 1], "cx": c.K[0, 2],
                      "cy": c.K[1, 2], "views_used": m["views_used"], "views_rejected": len(m["rejected_views"]),
-                     "image_size": [c.width, c.height], "dist": c.dist.tolist()})
-    summary = {"rms_px": meta["rms_px"], "cameras": cams, "baselines_m": meta["baselines_m"],
+                     "image_size": [c.width, c.height], "dist": c.dist.tolist(), "std": m["std"],
+                     "coverage": m.get("coverage"), "heldout_rms_px": m.get("heldout_rms_px"),
+                     "intrinsics": m.get("intrinsics")})
+    summary = {"rms_px": meta["rms_px"], "heldout_rms_px": meta.get("heldout_rms_px"),
+               "warnings": meta.get("warnings", []), "sync": meta.get("sync"),
+               "cameras": cams, "baselines_m": meta["baselines_m"],
                "views": len(meta["view_names"]), "views_used": meta["views_used"], "dist_model": meta["dist_model"],
                "target": meta["target"]["name"], "output": output, "exports": exports}
     if as_json:

@@ -30,6 +30,7 @@ COMMANDS = {
     "measure": "heartcv.cli.measure:measure",
     "report": "heartcv.cli.report:report",
     "fit": "heartcv.cli.fit:fit",
+    "rig": "heartcv.cli.rig:rig",
 }
 
 
@@ -103,6 +104,11 @@ def main(ctx, verbose, quiet):
                         force=True)
     # scikit-fem logs every assembly at INFO: library chatter, shown only with -v
     logging.getLogger("skfem").setLevel(logging.DEBUG if verbosity > 0 else logging.WARNING)
+    # FFmpeg prints a line per damaged packet of a video (thousands for a corrupt file): silenced before the first
+    # video is opened, unless -v (docs/video-input.md)
+    from heartcv.video import silence_ffmpeg
+
+    silence_ffmpeg(verbose=verbosity > 0)
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = verbosity
 

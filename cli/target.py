@@ -47,6 +47,9 @@ class GridSize(click.ParamType):
               help="ChArUco: ArUco dictionary (OpenCV name, e.g. DICT_5X5_250, DICT_6X6_250).")
 @click.option("--legacy", is_flag=True,
               help="ChArUco: OpenCV's legacy pattern (boards made before OpenCV 4.6 with an even number of rows).")
+@click.option("--inverted", is_flag=True,
+              help="ChArUco: colours swapped, white markers on black squares (caliscope's boards); detection then "
+                   "looks for the markers in the negative image.")
 @click.option("--dpi", type=Float(0, 10000, lo_open=True), default=300.0, show_default=True,
               help="Requested print resolution; adjusted so that every square is a whole number of pixels.")
 @click.option("--margin-mm", type=Float(0, 1000, hi_open=True), default=None,
@@ -55,8 +58,8 @@ class GridSize(click.ParamType):
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
               help="Target file (.yaml); the PNG and PDF are written beside it with the same stem.")
 @json_opt
-def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legacy, dpi, margin_mm, name, output,
-           as_json):
+def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legacy, inverted, dpi, margin_mm, name,
+           output, as_json):
     """Write a calibration target: OUTPUT (.yaml) plus OUTPUT's stem .png and .pdf to print.
 
     The image has an exact physical size: the DPI is adjusted slightly so that each square is a whole number
@@ -70,8 +73,8 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
     png, pdf = out.with_suffix(".png"), out.with_suffix(".pdf")
     guard_outputs({}, {}, files=[("-o/--output", out), ("-o/--output (PNG)", png), ("-o/--output (PDF)", pdf)])
-    grid = _grid(kind, squares, inner_corners, marker_mm, legacy)
-    spec = _spec(kind, grid, square_mm, marker_mm, dictionary, legacy, name or out.stem)
+    grid = _grid(kind, squares, inner_corners, marker_mm, legacy or inverted)
+    spec = _spec(kind, grid, square_mm, marker_mm, dictionary, legacy, name or out.stem, inverted)
     margin_m = spec.square_m if margin_mm is None else margin_mm / 1000
     image, px_per_m = render_board(spec, dpi=dpi, margin_m=margin_m)
     h, w = image.shape
@@ -84,7 +87,7 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
         "name": spec.name, "type": spec.type, "output": output, "png": str(png), "pdf": str(pdf),
         "squares": list(spec.squares_count), "inner_corners": list(spec.inner_size), "corners": spec.n_corners,
         "square_mm": spec.square_m * 1e3, "marker_mm": None if spec.marker_m is None else spec.marker_m * 1e3,
-        "dictionary": spec.dictionary, "legacy_pattern": spec.legacy,
+        "dictionary": spec.dictionary, "legacy_pattern": spec.legacy, "inverted": spec.inverted,
         "board_size_mm": [v * 1e3 for v in spec.board_size_m], "page_size_mm": [v * 1e3 for v in size_m],
         "margin_mm": (w - cols * round(spec.square_m * px_per_m)) / 2 / px_per_m * 1e3,
         "dpi": px_per_m * INCH_M, "dpi_requested": dpi, "px_per_m": px_per_m,
@@ -99,7 +102,7 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
                  summary["dpi"], summary["square_px"], spec.square_m * 1e3)
 
 
-def _grid(kind, squares, inner_corners, marker_mm, legacy):
+def _grid(kind, squares, inner_corners, marker_mm, charuco_flag):
     """The board's grid from the options of its type; exit 2 for a missing or conflicting option."""
     if kind == "charuco":
         if inner_corners is not None:
@@ -113,16 +116,16 @@ def _grid(kind, squares, inner_corners, marker_mm, legacy):
         raise BadInput("--squares applies to ChArUco boards; a chessboard is given by --inner-corners")
     if inner_corners is None:
         raise BadInput("--inner-corners is required for --type chessboard (e.g. --inner-corners 9x6)")
-    if marker_mm is not None or legacy:
-        raise BadInput("--marker-mm and --legacy apply to ChArUco boards only")
+    if marker_mm is not None or charuco_flag:
+        raise BadInput("--marker-mm, --legacy and --inverted apply to ChArUco boards only")
     return inner_corners
 
 
-def _spec(kind, grid, square_mm, marker_mm, dictionary, legacy, name):
+def _spec(kind, grid, square_mm, marker_mm, dictionary, legacy, name, inverted=False):
     """The target the options describe. TargetSpec refuses a marker not smaller than the square, an unknown
     dictionary or one with too few markers, fewer than 3 squares a way (InputError naming the field: exit 2)."""
     from heartcv.targets import TargetSpec
 
     charuco = kind == "charuco"
     return TargetSpec(kind, grid, square_mm / 1000, marker_mm / 1000 if charuco else None,
-                      dictionary.upper() if charuco else None, legacy, name)
+                      dictionary.upper() if charuco else None, legacy, name, inverted)

@@ -26,8 +26,8 @@ import numpy as np
 from .detect import Detection
 
 __all__ = ["CalibrationError", "IntrinsicsResult", "calibrate_intrinsics", "outlier_views", "usable_view",
-           "describe_target", "target_mismatch", "ViewSelection", "select_views", "DIST_MODELS", "MIN_VIEWS",
-           "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
+           "describe_target", "target_mismatch", "polarity_mismatch", "ViewSelection", "select_views",
+           "DIST_MODELS", "MIN_VIEWS", "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
 
 DIST_MODELS = (4, 5, 8)  # (k1, k2, p1, p2) [COLMAP OPENCV, Kalibr radtan], + k3, + rational k4..k6
 MIN_VIEWS = 4            # usable views needed per camera
@@ -157,7 +157,30 @@ def describe_target(spec) -> str:
     if spec.type == "chessboard":
         return f"chessboard with inner corners {spec.squares[0]}x{spec.squares[1]}"
     return (f"charuco with squares {spec.squares[0]}x{spec.squares[1]}, {spec.dictionary}"
-            + (", legacy pattern" if spec.legacy else ""))
+            + (", legacy pattern" if spec.legacy else "") + (", inverted" if spec.inverted else ""))
+
+
+def polarity_mismatch(detections, spec) -> str | None:
+    """Why the target's colours do not match the printed board, or None.
+
+    The board's markers are looked for in the negative of every image where none was found
+    (``Detection.other_polarity_markers``); when more images show at least 4 of them that way than show the
+    target as described, the board is printed with the other polarity.
+    """
+    if spec.type != "charuco":
+        return None
+    dets = [d for d in _flatten(detections) if d is not None]
+    other = sum(d.other_polarity_markers >= 4 for d in dets)
+    seen = sum(d.markers >= 4 for d in dets)
+    if other == 0 or other <= seen:
+        return None
+    if spec.inverted:
+        return (f"the board's markers were found in {other} images with black markers on white squares (and in "
+                f"{seen} as the target describes them, white on black): the board is not inverted; make the target "
+                f"without --inverted")
+    return (f"the board's markers were found in {other} images only with black and white swapped (and in {seen} as "
+            f"the target describes them): the board is printed inverted, white markers on black squares; make the "
+            f"target with `heartcv target ... --inverted`")
 
 
 def target_mismatch(detections, spec) -> str | None:
@@ -231,19 +254,44 @@ def _flags(dist_size):
     return {4: cv2.CALIB_FIX_K3, 5: 0, 8: cv2.CALIB_RATIONAL_MODEL}[dist_size]
 
 
-def _cv_calibrate(obj, img, image_size, dist_size):
+_FIX_FLAGS = ("CALIB_FIX_K1", "CALIB_FIX_K2", None, None, "CALIB_FIX_K3", "CALIB_FIX_K4", "CALIB_FIX_K5",
+              "CALIB_FIX_K6")
+
+
+def _cv_calibrate(obj, img, image_size, dist_size, free_dist=None, fix_principal_point=False, start=None):
     import cv2
 
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    out = cv2.calibrateCameraExtended(obj, img, tuple(int(v) for v in image_size), None, None,
-                                      flags=_flags(dist_size), criteria=crit)
+    flags = _flags(dist_size)
+    K0, d0 = None, None
+    if free_dist is not None:
+        for k, name in enumerate(_FIX_FLAGS[:dist_size]):
+            if not free_dist[k] and name is not None:
+                flags |= getattr(cv2, name)
+        if not (free_dist[2] and free_dist[3]):
+            flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    if fix_principal_point:
+        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+    if start is not None or fix_principal_point:
+        w, h = image_size
+        K0 = np.array([[max(w, h), 0, (w - 1) / 2], [0, max(w, h), (h - 1) / 2], [0, 0, 1.0]])
+        d0 = np.zeros(max(dist_size, 5))
+        if start is not None:
+            K0, d = np.array(start[0], float), np.asarray(start[1], float)
+            d0[:min(d.size, d0.size)] = d[:d0.size]
+        if free_dist is not None:  # fixed terms are fixed at 0 unless a start gives them
+            d0[:dist_size] = np.where(free_dist | (start is not None), d0[:dist_size], 0.0)
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+    out = cv2.calibrateCameraExtended(obj, img, tuple(int(v) for v in image_size), K0, d0,
+                                      flags=flags, criteria=crit)
     rms, K, dist, rvecs, tvecs, std_in, _, per_view = out
     return (float(rms), np.asarray(K, float), np.asarray(dist, float).reshape(-1)[:dist_size], rvecs, tvecs,
             np.asarray(std_in, float).reshape(-1), np.asarray(per_view, float).reshape(-1))
 
 
 def calibrate_intrinsics(detections, spec, image_size, *, dist_size=5, max_view_rms=None,
-                         outlier_factor=OUTLIER_FACTOR, min_views=MIN_VIEWS, name="camera") -> IntrinsicsResult:
+                         outlier_factor=OUTLIER_FACTOR, min_views=MIN_VIEWS, name="camera", free_dist=None,
+                         fix_principal_point=False, start=None, held=None) -> IntrinsicsResult:
     """Intrinsics of one camera from its detections, with outlier views rejected.
 
     Parameters
@@ -261,6 +309,15 @@ def calibrate_intrinsics(detections, spec, image_size, *, dist_size=5, max_view_
         calibrated again, until no view is rejected.
     min_views : int
         Fewer usable views (before or after rejection) raise :class:`CalibrationError`.
+    free_dist : ndarray of shape (dist_size,), bool, optional
+        Distortion coefficients estimated; the others stay at 0 (or at ``start``). Default: all.
+    fix_principal_point : bool
+        Keep the principal point at the image centre (or at ``start``).
+    start : (K, dist), optional
+        Start values (OpenCV's ``CALIB_USE_INTRINSIC_GUESS``).
+    held : (K, dist), optional
+        Intrinsics known and kept: only the board poses are estimated (``cv2.solvePnP`` per view, then
+        outlier views rejected); ``std`` is zero.
 
     Returns
     -------
@@ -281,7 +338,11 @@ def calibrate_intrinsics(detections, spec, image_size, *, dist_size=5, max_view_
         idx = np.flatnonzero(used)
         obj = [obj_all[detections[i].ids] for i in idx]
         img = [detections[i].uv.astype(np.float32) for i in idx]
-        rms, K, dist, rvecs, tvecs, std_in, pv = _cv_calibrate(obj, img, image_size, dist_size)
+        if held is not None:
+            rms, K, dist, rvecs, tvecs, std_in, pv = _pnp_views(obj, img, held, dist_size)
+        else:
+            rms, K, dist, rvecs, tvecs, std_in, pv = _cv_calibrate(obj, img, image_size, dist_size, free_dist,
+                                                                   fix_principal_point, start)
         per_view[idx] = pv
         bad = outlier_views(pv, factor=outlier_factor, max_view_rms=max_view_rms)
         if not bad.any():
@@ -299,3 +360,27 @@ def calibrate_intrinsics(detections, spec, image_size, *, dist_size=5, max_view_
         poses[i, :3, 3] = np.asarray(tvecs[k], float).reshape(3)
     std = np.concatenate([std_in[:4], std_in[4:4 + dist_size]])
     return IntrinsicsResult(K, dist, rms, per_view, used, rejected, poses, std)
+
+
+def _pnp_views(obj, img, held, dist_size):
+    """``_cv_calibrate``'s outputs with the intrinsics ``held`` = (K, dist): board poses by ``cv2.solvePnP``
+    (iterative, from the IPPE solution for planar targets)."""
+    import cv2
+
+    K = np.array(held[0], float)
+    d = np.zeros(dist_size)
+    given = np.asarray(held[1], float).reshape(-1)
+    d[:min(given.size, dist_size)] = given[:dist_size]
+    rvecs, tvecs, per_view, sq, n = [], [], [], 0.0, 0
+    for o, uv in zip(obj, img):
+        o = np.asarray(o, np.float64)
+        uv = np.asarray(uv, np.float64)
+        _, rv, tv = cv2.solvePnP(o, uv, K, d, flags=cv2.SOLVEPNP_IPPE)
+        _, rv, tv = cv2.solvePnP(o, uv, K, d, rv, tv, useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        e = cv2.projectPoints(o, rv, tv, K, d)[0].reshape(-1, 2) - uv
+        e2 = (e ** 2).sum(axis=1)
+        per_view.append(float(np.sqrt(e2.mean())))
+        sq, n = sq + float(e2.sum()), n + len(e2)
+        rvecs.append(rv)
+        tvecs.append(tv)
+    return (float(np.sqrt(sq / max(n, 1))), K, d, rvecs, tvecs, np.zeros(4 + dist_size), np.array(per_view))

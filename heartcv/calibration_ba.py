@@ -14,6 +14,11 @@ iterations per step on the paper's rig (20 s), or, with default tolerances, did 
 exact: complex-step derivatives ([2]_), one complex evaluation per parameter *kind* (all cameras' ``fx`` at
 once, all views' first rotation component at once, ...), as the blocks never share a residual row.
 
+Some camera parameters can be held (``free``: a mask over the camera block) and intrinsics can carry Gaussian
+priors (``prior_mean``, ``prior_sigma``: a term ``((x - mean) / sigma)^2`` added to the cost per parameter), and
+observations can be weighted (``RigProblem(weights=...)``: the cost is ``sum_m w_m |r_m|^2``); the calibration uses
+these to keep what the views do not determine out of the fit (heartcv.calibration_rig).
+
 Rotations are refined as left increments ``R = exp([w]x) R0`` with ``R0`` re-centred after each accepted step,
 so the Jacobian is always taken at ``w = 0``. Covariance of the camera parameters: ``sigma^2 S^-1`` at the
 solution, ``S`` the undamped Schur complement (the marginal of ``sigma^2 (J^T J)^-1``) and
@@ -105,13 +110,16 @@ class RigProblem:
     """Observations of a bundle adjustment: observation ``m`` is corner ``X[m]`` (board frame, m) of view
     ``obs_view[m]`` seen by camera ``obs_cam[m]`` at pixel ``uv[m]``."""
 
-    def __init__(self, obs_cam, obs_view, X, uv, n_cam, n_view, n_dist):
+    def __init__(self, obs_cam, obs_view, X, uv, n_cam, n_view, n_dist, weights=None):
         self.obs_cam = np.asarray(obs_cam, np.int64)
         self.obs_view = np.asarray(obs_view, np.int64)
         self.X, self.uv = np.asarray(X, float), np.asarray(uv, float)
         M = self.obs_cam.size
         if self.obs_view.shape != (M,) or self.X.shape != (M, 3) or self.uv.shape != (M, 2):
             raise ValueError(f"observations: obs_cam, obs_view (M,), X (M, 3), uv (M, 2) expected with M = {M}")
+        self.weights = np.ones(M) if weights is None else np.asarray(weights, float)
+        if self.weights.shape != (M,) or not (np.isfinite(self.weights).all() and (self.weights > 0).all()):
+            raise ValueError(f"weights: positive finite (M,) = ({M},) expected")
         self.n_cam, self.n_view, self.n_dist = int(n_cam), int(n_view), int(n_dist)
         self.ni = 4 + self.n_dist
         self.n_cam_params = self.n_cam * self.ni + 6 * (self.n_cam - 1)
@@ -176,6 +184,9 @@ class RigProblem:
         ``J^T r`` with the camera block first."""
         r = self.residuals(s) if r is None else r
         J_intr, J_cam, J_view = self.jacobian(s)
+        sw = np.sqrt(self.weights)[:, None]
+        r = r * sw
+        J_intr, J_cam, J_view = J_intr * sw[..., None], J_cam * sw[..., None], J_view * sw[..., None]
         V, nc = self.n_view, self.n_cam_params
         U = np.zeros((nc, nc))
         W = np.zeros((nc, V, 6))
@@ -198,6 +209,10 @@ class RigProblem:
     def n_residuals(self) -> int:
         return 2 * self.obs_cam.size
 
+    def cost(self, r) -> float:
+        """Weighted sum of squared residuals (M, 2)."""
+        return float((self.weights[:, None] * np.asarray(r) ** 2).sum())
+
 
 def _schur_solve(U, W, Vb, gc, gv, lam):
     """Solve ``(H + lam diag(H)) d = -g`` by eliminating the view blocks; also returns the (damped) Schur
@@ -213,8 +228,8 @@ def _schur_solve(U, W, Vb, gc, gv, lam):
     return dc, dv, S
 
 
-def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board, *, max_iterations=100,
-                  rtol=1e-12) -> BundleResult:
+def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board, *, free=None, prior_mean=None,
+                  prior_sigma=None, max_iterations=100, rtol=1e-12) -> BundleResult:
     """Levenberg-Marquardt with Schur complement (module docstring).
 
     Parameters
@@ -224,6 +239,11 @@ def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board,
     cam_from_rig : ndarray of shape (n_cam, 4, 4)
         Start; ``cam_from_rig[0]`` is kept as it is (the identity for a rig in camera 0's frame).
     rig_from_board : ndarray of shape (n_view, 4, 4)
+    free : ndarray of shape (n_cam_params,), bool, optional
+        Camera-block parameters refined (``[intrinsics of every camera | (w, t) of cameras 1..]``); the others keep
+        their start values. Default: all.
+    prior_mean, prior_sigma : ndarray of shape (n_cam, 4 + n_dist), optional
+        Gaussian priors on the intrinsics; ``prior_sigma = inf`` where there is none.
     max_iterations : int
     rtol : float
         Converged when an accepted step lowers the cost by less than ``rtol`` times the cost.
@@ -231,6 +251,8 @@ def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board,
     Returns
     -------
     BundleResult
+        ``cov_cameras`` is zero in the rows and columns of held parameters; ``sigma2`` is the weighted data cost
+        over ``2 M - n_free`` (priors not counted).
 
     Raises
     ------
@@ -238,22 +260,49 @@ def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board,
         The reduced camera system is singular (a camera or view without constraints).
     """
     C, V, ni = problem.n_cam, problem.n_view, problem.ni
+    nc = problem.n_cam_params
+    free = np.ones(nc, bool) if free is None else np.asarray(free, bool).reshape(nc)
+    fidx = np.flatnonzero(free)
+    if prior_sigma is None:
+        p_mean, p_info = np.zeros(nc), np.zeros(nc)
+    else:
+        sig = np.asarray(prior_sigma, float).reshape(C * ni)
+        p_mean = np.r_[np.asarray(prior_mean, float).reshape(C * ni), np.zeros(nc - C * ni)]
+        p_info = np.r_[np.where(np.isfinite(sig), 1.0 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0),
+                       np.zeros(nc - C * ni)]
+
+    def x_cam(st):
+        return np.r_[st.intr.reshape(-1), np.zeros(nc - C * ni)]
+
+    def total_cost(st, r):
+        d = x_cam(st) - p_mean
+        return problem.cost(r) + float((p_info * d * d).sum())
+
     s = _State(np.array(intrinsics, float).reshape(C, ni), np.array(cam_from_rig)[:, :3, :3].copy(),
                np.array(cam_from_rig)[:, :3, 3].copy(), np.array(rig_from_board)[:, :3, :3].copy(),
                np.array(rig_from_board)[:, :3, 3].copy())
+
+    def system(st, r):
+        U, W, Vb, gc, gv = problem.normal_equations(st, r)
+        U = U + np.diag(p_info)
+        gc = gc + p_info * (x_cam(st) - p_mean)
+        return U[np.ix_(fidx, fidx)], W[fidx], Vb, gc[fidx], gv
+
     r = problem.residuals(s)
-    cost = float((r * r).sum())
+    cost = total_cost(s, r)
     lam, converged, it = 1e-4, False, 0
     while it < max_iterations and not converged:
         it += 1
-        U, W, Vb, gc, gv = problem.normal_equations(s, r)
+        U, W, Vb, gc, gv = system(s, r)
         while True:
-            dc, dv, _ = _schur_solve(U, W, Vb, gc, gv, lam)
+            dcf, dv, _ = _schur_solve(U, W, Vb, gc, gv, lam)
+            dc = np.zeros(nc)
+            dc[fidx] = dcf
             d_intr = dc[:C * ni].reshape(C, ni)
             d_cam = dc[C * ni:].reshape(C - 1, 6)
             trial = s.moved(d_intr, d_cam, dv)
             r_new = problem.residuals(trial)
-            cost_new = float((r_new * r_new).sum())
+            cost_new = total_cost(trial, r_new)
             if np.isfinite(cost_new) and cost_new <= cost:
                 converged = cost - cost_new <= rtol * cost
                 s, r, cost = trial, r_new, cost_new
@@ -263,10 +312,11 @@ def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board,
             if lam > 1e12:  # no step lowers the cost: at the minimum to machine precision
                 converged = True
                 break
-    U, W, Vb, gc, gv = problem.normal_equations(s, r)
+    U, W, Vb, gc, gv = system(s, r)
     _, _, S = _schur_solve(U, W, Vb, gc, gv, 0.0)
-    sigma2 = cost / max(problem.n_residuals() - problem.n_params, 1)
-    cov = sigma2 * np.linalg.inv(S)
+    sigma2 = problem.cost(r) / max(problem.n_residuals() - fidx.size - 6 * V, 1)
+    cov = np.zeros((nc, nc))
+    cov[np.ix_(fidx, fidx)] = sigma2 * np.linalg.inv(S)
     T_c = np.tile(np.eye(4), (C, 1, 1))
     T_c[:, :3, :3], T_c[:, :3, 3] = s.Rc, s.tc
     T_v = np.tile(np.eye(4), (V, 1, 1))

@@ -77,6 +77,9 @@ class Detection:
     corners_expected : int
         ChArUco: inner corners both of whose neighbouring markers were found, i.e. the corners the board's
         layout promises; far more than ``len(ids)`` when the layout differs from the board in the image.
+    other_polarity_markers : int
+        ChArUco, counted only where no marker of the board was found: markers of the board found in the image
+        with black and white swapped (the target's ``inverted`` flag does not match the printed board).
     """
 
     ids: np.ndarray
@@ -84,6 +87,7 @@ class Detection:
     markers: int = 0
     foreign_markers: int = 0
     corners_expected: int = 0
+    other_polarity_markers: int = 0
 
     def __post_init__(self):
         ids = np.asarray(self.ids).reshape(-1)
@@ -325,12 +329,16 @@ def _charuco_layout(spec):
 def _detect_charuco(gray, spec) -> Detection:
     import cv2
 
+    if spec.inverted:  # white markers on black squares: the negative is an ordinary board
+        gray = 255 - gray
     detector = cv2.aruco.CharucoDetector(spec.cv_board())
     corners, ids, _, marker_ids = detector.detectBoard(gray)
     found = set() if marker_ids is None else set(np.asarray(marker_ids).reshape(-1).tolist())
     board_ids, neighbours = _charuco_layout(spec)
     counts = {"markers": len(found & board_ids), "foreign_markers": len(found - board_ids),
               "corners_expected": int(np.isin(neighbours, list(found)).all(axis=1).sum())}
+    if not counts["markers"]:
+        counts["other_polarity_markers"] = _other_polarity_markers(gray, spec, board_ids)
     if ids is None or len(ids) == 0:
         return Detection(np.zeros(0, np.int64), np.zeros((0, 2)), **counts)
     corners = corners.reshape(-1, 2).astype(float)
@@ -348,6 +356,15 @@ def _detect_charuco(gray, spec) -> Detection:
     margin_px = spacing * (spec.square_m - spec.marker_m) / 2 / spec.square_m
     halves = [min(SUBPIX_WINDOW * spacing, f * margin_px) for f in CHARUCO_WINDOWS]
     return Detection(ids, _refine(gray, corners, obj, halves), **counts)
+
+
+def _other_polarity_markers(gray, spec, board_ids) -> int:
+    """Markers of the board found in the negative of ``gray`` (the image as the detector saw it)."""
+    import cv2
+
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, spec.dictionary))
+    _, ids, _ = cv2.aruco.ArucoDetector(d).detectMarkers(255 - gray)
+    return 0 if ids is None else len(set(np.asarray(ids).reshape(-1).tolist()) & board_ids)
 
 
 # -- sub-pixel refinement -------------------------------------------------------------------------------

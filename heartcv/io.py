@@ -678,6 +678,9 @@ class FrameSource:
     files : tuple                        per camera, per instant, the image Path or None where that camera has
                                          no file for the instant (images); per camera ``(video path,)`` (video)
     fps : float or None                  the videos' frame rate when their containers state one
+    videos : tuple of VideoInfo or None  per camera, what :func:`heartcv.video.check_videos` found by decoding its
+                                         whole video (frame count, size, rate, each frame's container time);
+                                         None for image folders
     """
 
     folder: Path
@@ -686,6 +689,7 @@ class FrameSource:
     frame_names: tuple
     files: tuple
     fps: float | None = None
+    videos: tuple | None = None
 
     @property
     def n_frames(self) -> int:
@@ -737,13 +741,17 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras
         :meth:`FrameSource.missing` and read as missing); more, and the cameras are taken to have different
         frame counts, which is an error.
 
+    Every video is decoded once here (:func:`heartcv.video.check_videos`), before any frame is processed: a
+    video that cannot be opened, is truncated or corrupt, changes its frame size or has timestamps that go
+    backwards is refused now, naming the file, and the frame counts compared are the decoded ones.
+
     Raises
     ------
     HeartcvIOError
-        Not a folder, fewer than two cameras, a named camera absent, videos that cannot be opened, or cameras
-        with different frame counts (the counts are named).
+        Not a folder, fewer than two cameras, a named camera absent, a video that fails
+        :func:`heartcv.video.probe_video`, or cameras with different frame counts (the counts are named).
     """
-    import cv2
+    from .video import check_videos
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -771,22 +779,14 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras
                 f"{n} {c}" for n, c in zip(names, counts)) + f" ({len(instants)} instants in all)")
         files = tuple(tuple(d.get(i) for i in instants) for d in per_cam)
         return FrameSource(folder, "images", tuple(names), tuple(instants), files)
-    counts, rates = [], []
-    for _, (path,) in entries:
-        cap = cv2.VideoCapture(str(path))
-        try:
-            if not cap.isOpened():
-                raise HeartcvIOError(path, "cannot open the video (unsupported or corrupt)")
-            counts.append(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
-            rates.append(float(cap.get(cv2.CAP_PROP_FPS) or 0.0))
-        finally:
-            cap.release()
+    infos = check_videos([path for _, (path,) in entries])
+    counts, rates = [i.n_frames for i in infos], [i.fps or 0.0 for i in infos]
     if len(set(counts)) > 1:
         raise HeartcvIOError(folder, "cameras with different frame counts: " + ", ".join(
             f"{n} {c}" for n, c in zip(names, counts)))
     fps = rates[0] if rates and rates[0] > 0 and all(abs(r - rates[0]) < 1e-6 * rates[0] for r in rates) else None
     return FrameSource(folder, "video", tuple(names), tuple(f"frame{k:06d}" for k in range(counts[0])),
-                       tuple((e[1][0],) for e in entries), fps)
+                       tuple((e[1][0],) for e in entries), fps, tuple(infos))
 
 
 class FrameReader:
@@ -795,6 +795,9 @@ class FrameReader:
     Iterating yields ``(k, images, problems)``: ``images`` one array per camera (8-bit, gray or BGR per
     ``mode``) or None where that camera's image is missing, unreadable, corrupt or of the wrong size, and
     ``problems`` the messages (each naming the file) for those. Use as a context manager (videos are closed).
+    Videos are read with :class:`heartcv.video.VideoReader` (frame ``k`` is the ``k``-th decoded frame); a
+    source whose videos were not checked yet (``source.videos`` None) is checked with
+    :func:`heartcv.video.check_videos` on entering, before any frame is read.
 
     Parameters
     ----------
@@ -810,24 +813,25 @@ class FrameReader:
         self.sizes = list(sizes) if sizes is not None else [None] * source.n_cameras
         self.frames = list(range(source.n_frames)) if frames is None else [int(k) for k in frames]
         self.workers = max(1, int(workers))
-        self._caps = None
+        self._videos = None
         self._pool = None
 
     def __enter__(self):
         from concurrent.futures import ThreadPoolExecutor
 
-        self._pool = ThreadPoolExecutor(self.workers)
         if self.source.kind == "video":
-            import cv2
+            from .video import VideoReader, check_videos
 
-            self._caps = [cv2.VideoCapture(str(f[0])) for f in self.source.files]
-            self._pos = [0] * len(self._caps)
+            if self.source.videos is None:
+                check_videos([f[0] for f in self.source.files])
+            self._videos = [VideoReader(f[0]) for f in self.source.files]
+        self._pool = ThreadPoolExecutor(self.workers)
         return self
 
     def __exit__(self, *exc):
-        if self._caps:
-            for c in self._caps:
-                c.release()
+        if self._videos:
+            for v in self._videos:
+                v.close()
         if self._pool:
             self._pool.shutdown()
         return False
@@ -843,20 +847,16 @@ class FrameReader:
             return None, str(exc)
 
     def _read_video(self, c, k):
-        import cv2
-
-        cap, path = self._caps[c], self.source.files[c][0]
-        if self._pos[c] != k:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, k)
-        ok, img = cap.read()
-        self._pos[c] = k + 1
-        if not ok or img is None:
-            return None, f"{path}: frame {k} cannot be decoded"
-        if self.mode == "gray" and img.ndim == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        video = self._videos[c]
+        try:
+            img = video.read(k, gray=self.mode == "gray")
+        except HeartcvIOError as exc:
+            return None, str(exc)
+        if img is None:
+            return None, f"{video.path}: frame {k} cannot be decoded"
         size = self.sizes[c]
         if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
-            return None, f"{path}: frame {k} is {img.shape[1]}x{img.shape[0]} px, {size[0]}x{size[1]} expected"
+            return None, f"{video.path}: frame {k} is {img.shape[1]}x{img.shape[0]} px, {size[0]}x{size[1]} expected"
         return img, None
 
     def read(self, k):

@@ -67,6 +67,10 @@ class TargetSpec:
     legacy : bool
         ChArUco legacy pattern (OpenCV < 4.6 boards with an even number of rows).
     name : str
+    inverted : bool
+        ChArUco printed with its colours swapped: white markers on black squares (caliscope's and some vendors'
+        boards). Detection looks for the markers in the negative image; printable images and the renderer's
+        texture swap black and white inside the squares area (the margin stays white).
     """
 
     type: str
@@ -76,6 +80,7 @@ class TargetSpec:
     dictionary: str | None = None
     legacy: bool = False
     name: str = "target"
+    inverted: bool = False
 
     def __post_init__(self):
         # errors are InputError (a ValueError) naming the target file's key; heartcv.io.read_target adds the file
@@ -114,9 +119,14 @@ class TargetSpec:
                                  "marker_m" if self.marker_m is not None else "dictionary")
             if isinstance(self.legacy, (bool, np.bool_)) and self.legacy:
                 raise InputError(None, "legacy pattern applies to ChArUco targets only", "legacy_pattern")
+            if isinstance(self.inverted, (bool, np.bool_)) and self.inverted:
+                raise InputError(None, "inverted colours apply to ChArUco targets only (a chessboard with its "
+                                       "colours swapped is the same chessboard)", "inverted")
         if not isinstance(self.legacy, (bool, np.bool_)):
             raise InputError(None, f"legacy pattern: true or false expected, got {_show(self.legacy)}",
                              "legacy_pattern")
+        if not isinstance(self.inverted, (bool, np.bool_)):
+            raise InputError(None, f"inverted: true or false expected, got {_show(self.inverted)}", "inverted")
         if not isinstance(self.name, str) or not self.name.strip():
             raise InputError(None, f"a non-empty string expected, got {_show(self.name)}", "name")
         n_side = max(sq) if self.type == "charuco" else max(sq) + 1
@@ -126,6 +136,7 @@ class TargetSpec:
         object.__setattr__(self, "squares", sq)
         object.__setattr__(self, "square_m", float(self.square_m))
         object.__setattr__(self, "legacy", bool(self.legacy))
+        object.__setattr__(self, "inverted", bool(self.inverted))
         if self.marker_m is not None:
             object.__setattr__(self, "marker_m", float(self.marker_m))
 
@@ -187,6 +198,8 @@ class TargetSpec:
              "square_m": self.square_m}
         if self.type == "charuco":
             d.update({"marker_m": self.marker_m, "dictionary": self.dictionary, "legacy_pattern": bool(self.legacy)})
+            if self.inverted:  # written only when true: files of normal boards stay as they were
+                d["inverted"] = True
         return d
 
     @classmethod
@@ -207,7 +220,8 @@ class TargetSpec:
         key = "squares" if typ == "charuco" else "inner_corners"
         # informative keys written by heartcv.io.write_target: accepted, not part of the spec
         known = {"format", "format_version", "name", "type", key, "square_m", "marker_m", "dictionary",
-                 "legacy_pattern", "image", "dpi", "heartcv_version", "board_size_m", "producer", "description"}
+                 "legacy_pattern", "inverted", "image", "dpi", "heartcv_version", "board_size_m", "producer",
+                 "description"}
         unknown = sorted(set(d) - known, key=str)
         if unknown:
             raise InputError(None, f"unknown field (known: {sorted(known)})", str(unknown[0]))
@@ -218,7 +232,7 @@ class TargetSpec:
         if not isinstance(sq, (list, tuple)):
             raise InputError(None, f"a list [cols, rows] expected, got {_show(sq)}", key)
         return cls(typ, tuple(sq), d["square_m"], d.get("marker_m"), d.get("dictionary"),
-                   d.get("legacy_pattern", False), d.get("name", "target"))
+                   d.get("legacy_pattern", False), d.get("name", "target"), d.get("inverted", False))
 
 
 def _is_int(v) -> bool:
@@ -296,7 +310,8 @@ def board_texture(spec: TargetSpec, px_per_m: float) -> np.ndarray:
     ``n = square_m * px_per_m`` must be a whole number (:func:`exact_px_per_m`). Pixel ``(col, row)`` covers the
     board-frame cell starting at ``spec.squares_origin_m + (col, row) / px_per_m`` (module docstring). ChArUco
     squares and markers come from ``cv2.aruco.CharucoBoard.generateImage`` (1-bit marker border), so marker ids
-    and the legacy pattern are OpenCV's; chessboards have a black top-left square. Results are cached.
+    and the legacy pattern are OpenCV's, with black and white swapped for an inverted target; chessboards have a
+    black top-left square. Results are cached.
     """
     return _texture(spec, _square_px(spec, px_per_m))
 
@@ -307,6 +322,8 @@ def _texture(spec: TargetSpec, n: int) -> np.ndarray:
     if spec.type == "charuco":
         img = spec.cv_board().generateImage((cols * n, rows * n), marginSize=0, borderBits=1)
         tex = img.astype(np.float32) / 255.0
+        if spec.inverted:
+            tex = 1.0 - tex
     else:
         small = (np.add.outer(np.arange(rows), np.arange(cols)) % 2).astype(np.float32)  # (0, 0) black
         tex = np.repeat(np.repeat(small, n, axis=0), n, axis=1)

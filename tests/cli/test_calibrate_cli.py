@@ -69,9 +69,13 @@ def test_calibrate_stereo_pairs(tmp_path, target):
     assert rig.meta["view_names"] == PAIRS
     assert np.allclose(rig[0].cam_from_rig, np.eye(4))
     assert (out.parent / "rig_colmap" / "cameras.txt").is_file() and (out.parent / "rig_colmap" / "rigs.txt").is_file()
-    assert summary["exports"]["kalibr"] is None and "k3" in summary["exports"]["kalibr_skipped"]
-    assert not (out.parent / "rig_camchain.yaml").exists()
-    assert "no Kalibr camchain written" in res.stderr
+    # the corners cover 43 % of each image, under the 50 % that k3 needs: k3 held at 0 (a warning names it), so
+    # Kalibr's radtan model holds the rig and the camchain is written
+    for c in summary["cameras"]:
+        assert 0.40 < c["coverage"] < 0.46 and c["dist"][4] == 0.0 and c["intrinsics"]["k3"].startswith("held at 0")
+    assert any("k3 not determined" in w for w in summary["warnings"])
+    assert summary["exports"]["kalibr"] == str(out.parent / "rig_camchain.yaml")
+    assert (out.parent / "rig_camchain.yaml").is_file()
 
 
 @needs_data
@@ -257,13 +261,13 @@ def test_synthetic_rig_summary_and_truth(tmp_path, syn_set, syn_target):
     assert res.exit_code == 0, res.output
     s = json.loads(res.stdout)
     assert set(s) == {"rms_px", "cameras", "baselines_m", "views", "views_used", "dist_model", "target", "output",
-                      "exports"}
+                      "exports", "heldout_rms_px", "warnings", "sync"}
     assert s["rms_px"] < 0.1 and s["views"] == SYN_VIEWS and s["views_used"] == SYN_VIEWS
     assert s["target"] == "charuco7x6" and s["dist_model"] == 4 and s["output"] == str(out)
     cams = syn_set[1]
     for c, true in zip(s["cameras"], cams):
         assert set(c) == {"name", "rms_px", "fx", "fy", "cx", "cy", "views_used", "views_rejected", "image_size",
-                          "dist"}
+                          "dist", "std", "coverage", "heldout_rms_px", "intrinsics"}
         assert c["name"] == true.name and c["views_used"] == SYN_VIEWS and c["views_rejected"] == 0
         assert c["rms_px"] < 0.1 and c["image_size"] == list(SYN_SIZE)
         # measured: focal lengths within 0.13 %, principal points within 0.5 px, baselines within 0.1 %
