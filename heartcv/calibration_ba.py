@@ -229,7 +229,7 @@ def _schur_solve(U, W, Vb, gc, gv, lam):
 
 
 def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board, *, free=None, prior_mean=None,
-                  prior_sigma=None, max_iterations=100, rtol=1e-12) -> BundleResult:
+                  prior_sigma=None, consider_sigma=None, max_iterations=100, rtol=1e-12) -> BundleResult:
     """Levenberg-Marquardt with Schur complement (module docstring).
 
     Parameters
@@ -244,6 +244,11 @@ def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board,
         their start values. Default: all.
     prior_mean, prior_sigma : ndarray of shape (n_cam, 4 + n_dist), optional
         Gaussian priors on the intrinsics; ``prior_sigma = inf`` where there is none.
+    consider_sigma : ndarray of shape (n_cam, 4 + n_dist), optional
+        Uncertainty of held intrinsics (finite entries of held parameters): their effect on the estimated
+        parameters is added to the covariance ("consider" covariance: ``G diag(sigma^2) G^T`` with
+        ``G = S_ee^-1 S_eh`` from the Schur complement over estimated and considered parameters), so holding a
+        parameter at a value that is only roughly known does not make the others look more certain.
     max_iterations : int
     rtol : float
         Converged when an accepted step lowers the cost by less than ``rtol`` times the cost.
@@ -312,11 +317,25 @@ def bundle_adjust(problem: RigProblem, intrinsics, cam_from_rig, rig_from_board,
             if lam > 1e12:  # no step lowers the cost: at the minimum to machine precision
                 converged = True
                 break
-    U, W, Vb, gc, gv = system(s, r)
-    _, _, S = _schur_solve(U, W, Vb, gc, gv, 0.0)
     sigma2 = problem.cost(r) / max(problem.n_residuals() - fidx.size - 6 * V, 1)
+    cons = np.zeros(nc, bool)
+    if consider_sigma is not None:
+        cs = np.r_[np.asarray(consider_sigma, float).reshape(C * ni), np.full(nc - C * ni, np.nan)]
+        cons = ~free & np.isfinite(cs) & (np.nan_to_num(cs) > 0)
+    fidx_saved = fidx
+    fidx = np.flatnonzero(free | cons)
+    U, W, Vb, gc, gv = system(s, r)
+    _, _, S_all = _schur_solve(U, W, Vb, gc, gv, 0.0)
+    fidx = fidx_saved
+    e = np.flatnonzero(free[free | cons])
+    h = np.flatnonzero(cons[free | cons])
+    S = S_all[np.ix_(e, e)]
     cov = np.zeros((nc, nc))
-    cov[np.ix_(fidx, fidx)] = sigma2 * np.linalg.inv(S)
+    cov_e = sigma2 * np.linalg.inv(S)
+    if h.size:
+        G = np.linalg.solve(S, S_all[np.ix_(e, h)])
+        cov_e = cov_e + G @ np.diag(cs[cons] ** 2) @ G.T
+    cov[np.ix_(fidx, fidx)] = cov_e
     T_c = np.tile(np.eye(4), (C, 1, 1))
     T_c[:, :3, :3], T_c[:, :3, 3] = s.Rc, s.tc
     T_v = np.tile(np.eye(4), (V, 1, 1))

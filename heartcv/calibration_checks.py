@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["image_coverage", "distortion_terms", "distortion_fold", "sync_displacement", "sync_weights",
-           "jackknife_std", "COVERAGE_FULL", "COVERAGE_K2", "SYNC_DROP_PX", "SYNC_SIGMA_PX", "PP_PRIOR_FRACTION"]
+           "jackknife_std", "HELD_DIST_SIGMA", "COVERAGE_FULL", "COVERAGE_K2", "SYNC_DROP_PX", "SYNC_SIGMA_PX", "PP_PRIOR_FRACTION"]
 
 # coverage (fraction of the image area under the corners) needed for ...
 COVERAGE_K2 = 0.20    # ... k2 and the tangential terms (below it: k1 only)
@@ -29,6 +29,10 @@ COVERAGE_FULL = 0.50  # ... k3 and the rational terms (the model asked for)
 PP_PRIOR_FRACTION = 0.10  # principal point prior: image centre, sigma = 10 % of the image side
 SYNC_SIGMA_PX = 0.5   # a corner that moved d px between exposures gets weight 1 / (1 + (d / SYNC_SIGMA_PX)^2)
 SYNC_DROP_PX = 5.0    # camera views whose board moved more than this (median over corners) are dropped
+# spread of the distortion terms that coverage holds at 0 (k1 k2 p1 p2 k3 k4 k5 k6), used for the "consider"
+# covariance of the others: the terms of real lenses (webcams, endoscopes, machine-vision lenses) seldom pass
+# |k2|, |k3| ~ 0.3 or |p| ~ 0.005 when k1 is fitted (OpenCV's sample cameras, caliscope's, Kalibr's examples)
+HELD_DIST_SIGMA = (0.0, 0.15, 0.003, 0.003, 0.15, 0.15, 0.15, 0.15)
 COVERAGE_GRID = 256   # coverage is counted on a grid of at most this many cells along the longer side
 
 

@@ -41,6 +41,7 @@ from .calibration import (
 )
 from .calibration_ba import RigProblem, bundle_adjust
 from .calibration_checks import (
+    HELD_DIST_SIGMA,
     PP_PRIOR_FRACTION,
     SYNC_DROP_PX,
     distortion_fold,
@@ -276,6 +277,10 @@ def calibrate_rig_detailed(detections, spec, image_sizes, *, names=None, view_na
             prior_mean[c, 2:4] = (w - 1) / 2, (h - 1) / 2
             prior_sigma[c, 2:4] = PP_PRIOR_FRACTION * w, PP_PRIOR_FRACTION * h
     decisions = _decisions(names, hold, given, free_intr, coverage, dist_size, np.isfinite(prior_sigma[:, 2]))
+    consider = np.full((n_cam, ni), np.nan)  # distortion terms held for want of coverage: roughly known
+    for c in range(n_cam):
+        if not hold[c]:
+            consider[c, 4:] = np.where(free_dist[c], np.nan, np.asarray(HELD_DIST_SIGMA[:dist_size]))
     for c, n in enumerate(names):
         fixed = [_DIST_NAMES[k] for k in range(dist_size) if not hold[c] and not free_dist[c, k]]
         if fixed:
@@ -295,7 +300,7 @@ def calibrate_rig_detailed(detections, spec, image_sizes, *, names=None, view_na
         ba, prob, vidx, used, view_rms = _refine(detections, used, spec, dist_size, x_intr, cam_from_rig,
                                                  rig_from_board, free_intr, prior_mean, prior_sigma, weights_cv,
                                                  view_rms, names, max_view_rms, outlier_factor, min_views,
-                                                 max_rounds, say)
+                                                 max_rounds, say, consider)
         folded = []
         for c in range(n_cam):
             K = _K(ba.intrinsics[c])
@@ -311,6 +316,7 @@ def calibrate_rig_detailed(detections, spec, image_sizes, *, names=None, view_na
                 if radial:
                     k = radial[0]
                     free_intr[c, 4 + k] = False
+                    consider[c, 4 + k] = HELD_DIST_SIGMA[k]
                     folded.append(c)
                     decisions[names[c]][_DIST_NAMES[k]] = "held at 0: the fitted distortion folded back inside " \
                                                           "the image"
@@ -406,7 +412,8 @@ def _sync(detections, used, times, names):
 
 
 def _refine(detections, used, spec, dist_size, x_intr, cam_from_rig, rig_from_board, free_intr, prior_mean,
-            prior_sigma, weights_cv, view_rms, names, max_view_rms, outlier_factor, min_views, max_rounds, say):
+            prior_sigma, weights_cv, view_rms, names, max_view_rms, outlier_factor, min_views, max_rounds, say,
+            consider=None):
     """Joint refinement rounds with outlier camera views rejected (module docstring, step 4)."""
     n_cam, n_views = used.shape
     free = np.r_[free_intr.ravel(), np.ones(6 * (n_cam - 1), bool)]
@@ -415,7 +422,7 @@ def _refine(detections, used, spec, dist_size, x_intr, cam_from_rig, rig_from_bo
         prob, vidx = _build_problem(detections, used, spec, dist_size, weights_cv)
         try:
             ba = bundle_adjust(prob, x_intr, cam_from_rig, rig_from_board[vidx >= 0], free=free,
-                               prior_mean=prior_mean, prior_sigma=prior_sigma)
+                               prior_mean=prior_mean, prior_sigma=prior_sigma, consider_sigma=consider)
         except np.linalg.LinAlgError:
             raise CalibrationError("the joint refinement is degenerate (singular normal equations): the views do "
                                    "not constrain every camera; add views with the board tilted") from None

@@ -98,6 +98,8 @@ def detect_format(path) -> str:
             return "text"
         raise InputError(p, "a folder with neither cameras.txt (COLMAP) nor *.NAME.intrinsic.txt files (text); "
                             f"formats: {', '.join(FORMATS)}", "format")
+    if p.is_file() and _binary(p):
+        raise _unrecognised(p, " (a binary file)")
     text = read_text(p, "calibration file", LIMITS["yaml_bytes"])
     if p.name in ("cameras.txt", "rigs.txt"):
         return "colmap"
@@ -117,9 +119,30 @@ def detect_format(path) -> str:
                 return "kalibr"
             if "camera_matrix" in d or "M1" in d or ("R" in d and "T" in d):
                 return "opencv"
-    raise InputError(p, "not recognised as any of the formats heartcv imports (opencv: camera_matrix or M1/D1/M2/D2 "
-                        "+ R/T; kalibr: cam0.intrinsics; colmap: cameras.txt; caliscope: .toml; text: rows of "
-                        f"numbers); formats: {', '.join(FORMATS)}; pass --format if it is one of them", "format")
+    raise _unrecognised(p)
+
+
+def _unrecognised(p, why: str = "") -> InputError:
+    return InputError(p, f"not recognised as any of the formats heartcv imports{why} (opencv: camera_matrix or "
+                         "M1/D1/M2/D2 + R/T; kalibr: cam0.intrinsics; colmap: cameras.txt; caliscope: .toml; text: "
+                         f"rows of numbers); formats: {', '.join(FORMATS)}; pass --format if it is one of them",
+                      "format")
+
+
+def _binary(p: Path) -> bool:
+    """Whether a file's first 8 KiB hold a NUL byte or are not UTF-8."""
+    import codecs
+
+    try:
+        with open(p, "rb") as f:
+            head = f.read(8192)
+    except OSError as exc:
+        raise InputError(p, f"cannot read ({exc.strerror or exc})") from None
+    try:
+        codecs.getincrementaldecoder("utf-8")().decode(head, final=False)
+    except UnicodeDecodeError:
+        return True
+    return b"\x00" in head
 
 
 def _is_filestorage(text: str) -> bool:
@@ -378,15 +401,16 @@ def read_foreign(fmt: str, files, image_sizes=()) -> ImportedRig:
 
 def finish_import(imp: ImportedRig, units: str | None = None, names=None, producer: str = "heartcv rig import") -> Rig:
     """The rig to write: translations in metres (:func:`convert_units`), cameras renamed, and the provenance in
-    ``meta``: ``producer``, ``source_format``, ``source_files`` (path and sha256), ``inputs_hash``,
-    ``units_conversion``, ``orthonormalised``, ``source_rig_frame``. The rig is checked to read back from its
-    file (the rig file's plausibility bounds) before it is returned."""
+    ``meta``: ``producer``, ``source_format``, ``source_files`` (path and sha256), ``inputs_hash`` (``source_i``
+    -> sha256, in ``source_files`` order), ``units_conversion``, ``orthonormalised``, ``source_rig_frame``. The rig
+    is checked to read back from its file (the rig file's plausibility bounds) before it is returned."""
     rig, record = convert_units(imp.rig, units, *imp.translations)
     if names is not None:
         rig = rename_cameras(rig, names)
     hashes = [{"file": str(f), "sha256": file_hash(f)} for f in imp.files]
     meta = dict(rig.meta)
-    meta.update({"producer": producer, "inputs_hash": {h["file"]: h["sha256"] for h in hashes},
+    # inputs_hash keys are roles (source_0, source_1, ...): OpenCV's FileStorage cannot read quoted keys (paths)
+    meta.update({"producer": producer, "inputs_hash": {f"source_{i}": h["sha256"] for i, h in enumerate(hashes)},
                  "source_format": imp.source_format, "source_files": hashes, "source_rig_frame": imp.rig_frame,
                  "units_conversion": record, "orthonormalised": list(imp.corrections)})
     rig = Rig(rig.cameras, meta)
@@ -693,8 +717,9 @@ def _read_opencv(files, image_sizes) -> ImportedRig:
         if rms is not None:
             meta[f"cam{i}"] = {"rms_px": rms}
     where = (extr[0], "T") if extr else (files[0], "T")
+    frame = "the first camera (cam0: M1 of stereo_calib.cpp)" if cams[0][5] == "M1" else "the first camera (cam0)"
     return ImportedRig(Rig(tuple(out), {"cameras": meta} if meta else {}), "opencv", tuple(files),
-                       tuple(corrections), where, rig_frame="the first camera (cam0; M1 of stereo_calib.cpp)")
+                       tuple(corrections), where, rig_frame=frame)
 
 
 # =====================================================================================================================

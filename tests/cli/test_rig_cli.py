@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-import tomllib
 
 from click.testing import CliRunner
 import numpy as np
@@ -61,6 +60,7 @@ def test_import_kalibr_names_and_json(tmp_path):
     assert back.meta["producer"] == "heartcv rig import" and back.meta["source_format"] == "kalibr"
     assert back.meta["source_files"][0]["file"] == str(src)
     assert back.meta["source_files"][0]["sha256"].startswith("sha256:")
+    assert back.meta["inputs_hash"] == {"source_0": back.meta["source_files"][0]["sha256"]}
     # running again replaces heartcv's own output
     assert _run("rig", "import", src, "-o", out).exit_code == 0
     assert read_rig(out).names == ["cam0", "cam1"]
@@ -87,6 +87,11 @@ def test_import_bad_input_exit_2(tmp_path):
     res = _run("rig", "import", notes, "-o", tmp_path / "rig.yaml")
     assert res.exit_code == 2 and f"{notes}: format: not recognised" in res.output
     assert "opencv, kalibr, colmap, caliscope, text" in res.output
+    png = tmp_path / "frame.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    res = _run("rig", "import", png, "-o", tmp_path / "rig.yaml")
+    assert res.exit_code == 2 and f"{png}: format: not recognised as any of the formats heartcv imports (a binary" \
+        in res.output
     res = _run("rig", "import", tmp_path / "missing.yml", "-o", tmp_path / "rig.yaml")
     assert res.exit_code == 2 and "missing.yml: no such" in res.output
     toml = tmp_path / "camera_array.toml"
@@ -164,6 +169,7 @@ def test_import_caliscope(tmp_path):
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout)["rig_frame"] == "custom"
     back = read_rig(out)
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
     truth = tomllib.loads((CALISCOPE / "camera_array.toml").read_text())["cameras"]
     assert "\nrig_frame: custom\n" in out.read_text()
     for cam, key in zip(back.cameras, sorted(truth)):
@@ -269,3 +275,21 @@ def test_import_mutated_files_never_internal_error(tmp_path):
         assert res.exit_code in (0, 2), (case, name, res.output)
         assert "internal error" not in res.output and "Traceback" not in res.output, (case, name, res.output)
         assert res.exit_code == 2 or read_rig(folder / "out.yaml").names
+
+
+def test_import_rig_file_reads_with_opencv(tmp_path, monkeypatch):
+    """The rig file stays readable by cv2.FileStorage (docs/formats.md §8.2), also with source paths such as
+    ``../x.yaml`` that YAML must quote (OpenCV cannot read quoted keys: they appear only as values)."""
+    import cv2
+
+    src, rig = _stereo(tmp_path)
+    (tmp_path / "sub").mkdir()
+    monkeypatch.chdir(tmp_path / "sub")
+    res = _run("rig", "import", "../camchain.yaml", "-o", "rig.yaml")
+    assert res.exit_code == 0, res.output
+    fs = cv2.FileStorage()
+    assert fs.open("rig.yaml", cv2.FILE_STORAGE_READ)
+    cam = fs.getNode("cameras").at(1)
+    assert cam.getNode("K").at(0).at(0).real() == rig[1].K[0, 0]
+    assert fs.getNode("source_files").at(0).getNode("file").string() == "../camchain.yaml"
+    fs.release()
