@@ -84,34 +84,11 @@ def _rms(r) -> float:
 
 
 def hull_coverage(size, point_sets) -> tuple[float, np.ndarray]:
-    """Fraction of the image covered by the union of the convex hulls of point sets, and the mask.
+    """Fraction of the image covered by the union of the convex hulls of point sets, and the mask (on a grid
+    whose longer side has at most 4096 pixels): :func:`heartcv.calibration_checks.coverage_mask`."""
+    from heartcv.calibration_checks import coverage_mask
 
-    Parameters
-    ----------
-    size : (int, int)
-        Image ``(width, height)`` in pixels.
-    point_sets : iterable of ndarray of shape (n, 2)
-        Pixel positions (one set per view); sets of fewer than 3 points cover nothing.
-
-    Returns
-    -------
-    fraction : float in [0, 1]
-    mask : ndarray of shape (h, w), bool
-        The covered pixels, on a grid scaled down so that its longer side has at most 4096 pixels.
-    """
-    import cv2
-
-    w, h = size
-    s = min(1.0, _MAX_MASK_PX / max(w, h))
-    mask = np.zeros((max(1, round(h * s)), max(1, round(w * s))), np.uint8)
-    for pts in point_sets:
-        pts = np.asarray(pts, float)
-        pts = pts[np.isfinite(pts).all(axis=1)]
-        if len(pts) < 3:
-            continue
-        hull = cv2.convexHull(np.round((pts + 0.5) * s * 16 - 0.5 * 16).astype(np.int32))  # 1/16 px, shift=4
-        cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=4)
-    return float(mask.mean()), mask.astype(bool)
+    return coverage_mask(point_sets, size, _MAX_MASK_PX)
 
 
 def _views_points(cal, detections, c, used: bool) -> list:

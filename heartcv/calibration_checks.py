@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["image_coverage", "distortion_terms", "distortion_fold", "sync_displacement", "sync_weights",
-           "jackknife_std", "HELD_DIST_SIGMA", "COVERAGE_FULL", "COVERAGE_K2", "SYNC_DROP_PX", "SYNC_SIGMA_PX", "PP_PRIOR_FRACTION"]
+__all__ = ["image_coverage", "coverage_mask", "distortion_terms", "distortion_fold", "sync_displacement",
+           "sync_weights", "jackknife_std", "HELD_DIST_SIGMA", "COVERAGE_FULL", "COVERAGE_K2", "SYNC_DROP_PX",
+           "SYNC_SIGMA_PX", "PP_PRIOR_FRACTION"]
 
 # coverage (fraction of the image area under the corners) needed for ...
 COVERAGE_K2 = 0.20    # ... k2 and the tangential terms (below it: k1 only)
@@ -37,28 +38,41 @@ COVERAGE_GRID = 256   # coverage is counted on a grid of at most this many cells
 
 
 def image_coverage(uv_views, image_size) -> float:
-    """Fraction of the image area inside the union of the convex hulls of the corners of each view.
+    """Fraction of the image area inside the union of the convex hulls of the corners of each view, counted on a
+    grid of at most ``COVERAGE_GRID`` cells along the longer side (:func:`coverage_mask`)."""
+    return coverage_mask(uv_views, image_size, COVERAGE_GRID)[0]
+
+
+def coverage_mask(uv_views, image_size, max_side) -> tuple[float, np.ndarray]:
+    """Union of the convex hulls of point sets (one per view; fewer than 3 points cover nothing), rasterised.
 
     Parameters
     ----------
     uv_views : iterable of ndarray (n_i, 2)
-        Corner pixels per view (views with fewer than 3 corners add nothing).
+        Pixels (OpenCV convention: pixel ``(0, 0)`` is the centre of the top-left pixel).
     image_size : (int, int)
         ``(width, height)``.
+    max_side : int
+        The mask's longer side at most (the image is scaled down to it, never up).
+
+    Returns
+    -------
+    fraction : float in [0, 1]
+    mask : ndarray (h, w), bool
     """
     import cv2
 
     w, h = image_size
-    s = min(1.0, COVERAGE_GRID / max(w, h))
-    gw, gh = max(1, int(round(w * s))), max(1, int(round(h * s)))
-    mask = np.zeros((gh, gw), np.uint8)
+    s = min(1.0, max_side / max(w, h))
+    mask = np.zeros((max(1, round(h * s)), max(1, round(w * s))), np.uint8)
     for uv in uv_views:
         uv = np.asarray(uv, float).reshape(-1, 2)
+        uv = uv[np.isfinite(uv).all(axis=1)]
         if len(uv) < 3:
             continue
-        hull = cv2.convexHull(np.round((uv + 0.5) * s * 16).astype(np.int32))
+        hull = cv2.convexHull(np.round(((uv + 0.5) * s - 0.5) * 16).astype(np.int32))  # 1/16 px: shift=4
         cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=4)
-    return float(mask.mean())
+    return float(mask.mean()), mask.astype(bool)
 
 
 def distortion_terms(coverage: float, dist_size: int) -> np.ndarray:
