@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
 TORCH ?= torch==2.13.0
 
-.PHONY: test test-slow demo bench clean-venv fuzz
+.PHONY: test test-slow demo bench clean-venv fuzz calibrate-real
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -36,6 +36,20 @@ bench: $(STAMP)
 
 fuzz: $(STAMP)
 	HEARTCV_FUZZ_REPORT=fuzz-report.json $(PY) -m pytest -q -m slow tests/test_fuzz_readers.py
+
+# a real rig nobody here made: caliscope's 4 unsynchronised webcams and its inverted ChArUco board
+# (../shared/data/caliscope_4cam_charuco); rig file, COLMAP/Kalibr exports and a report under sample_sequences/work
+CALISCOPE := ../shared/data/caliscope_4cam_charuco
+CS_OUT := sample_sequences/work/caliscope
+calibrate-real: $(STAMP)
+	mkdir -p $(CS_OUT)
+	$(PY) -m heartcv.cli.main target --type charuco --squares 4x5 --square-mm 54 --marker-mm 40.5 \
+		--dict DICT_4X4_1000 --inverted -o $(CS_OUT)/board.yaml
+	$(PY) -m heartcv.cli.main calibrate $(CALISCOPE)/calibration/extrinsic --target $(CS_OUT)/board.yaml \
+		-o $(CS_OUT)/rig.yaml --report $(CS_OUT)/report --json > $(CS_OUT)/calibrate.json
+	$(PY) -m heartcv.cli.main rig import $(CALISCOPE)/camera_array.toml -o $(CS_OUT)/caliscope.yaml
+	$(PY) -m heartcv.cli.main calibrate $(CALISCOPE)/calibration/extrinsic --target $(CS_OUT)/board.yaml \
+		-o $(CS_OUT)/rig_held.yaml --intrinsics $(CS_OUT)/caliscope.yaml --hold all
 
 clean-venv:
 	rm -rf $(VENV)

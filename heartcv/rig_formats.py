@@ -94,7 +94,7 @@ def detect_format(path) -> str:
     if p.is_dir():
         if (p / "cameras.txt").is_file():
             return "colmap"
-        if any(_HAMLYN_K.match(q.name) for q in p.iterdir()):
+        if any(_HAMLYN_K.match(q.name) for q in _listdir(p)):
             return "text"
         raise InputError(p, "a folder with neither cameras.txt (COLMAP) nor *.NAME.intrinsic.txt files (text); "
                             f"formats: {', '.join(FORMATS)}", "format")
@@ -120,6 +120,13 @@ def detect_format(path) -> str:
             if "camera_matrix" in d or "M1" in d or ("R" in d and "T" in d):
                 return "opencv"
     raise _unrecognised(p)
+
+
+def _listdir(folder: Path) -> list[Path]:
+    try:
+        return sorted(folder.iterdir())
+    except OSError as exc:
+        raise InputError(folder, f"cannot list the folder ({exc.strerror or exc})", "FILE") from None
 
 
 def _unrecognised(p, why: str = "") -> InputError:
@@ -187,13 +194,7 @@ def plan_import(paths, fmt: str | None = None) -> tuple[str, list[Path]]:
     elif fmt not in FORMATS:
         raise InputError(None, f"one of {FORMATS} expected, got {fmt!r}", "--format")
     if fmt == "colmap":
-        folders = {(p if p.is_dir() else p.parent).resolve() for p in paths}
-        if len(folders) > 1:
-            raise InputError(paths[0], "COLMAP: one model folder (cameras.txt + rigs.txt) expected, got files from "
-                                       f"{len(folders)} folders", "FILE")
-        folder = paths[0] if paths[0].is_dir() else paths[0].parent
-        files = [folder / "cameras.txt"] + ([folder / "rigs.txt"] if (folder / "rigs.txt").exists() else [])
-        return fmt, files
+        return fmt, _colmap_files(paths)
     if fmt == "text" and len(paths) == 1 and paths[0].is_dir():
         return fmt, _hamlyn_files(paths[0])
     for p in paths:
@@ -206,10 +207,28 @@ def plan_import(paths, fmt: str | None = None) -> tuple[str, list[Path]]:
     return fmt, paths
 
 
+def _colmap_files(paths) -> list[Path]:
+    """[cameras.txt, rigs.txt (when there is one)] of a model folder, or of the files given (a file not named
+    rigs.txt is the cameras file; the missing one is looked for beside the other)."""
+    if len(paths) == 1 and paths[0].is_dir():
+        folder = paths[0]
+        cams, rigs = folder / "cameras.txt", folder / "rigs.txt"
+    else:
+        if len(paths) > 2 or any(p.is_dir() for p in paths):
+            raise InputError(paths[0], "COLMAP: one model folder, or its cameras.txt (and rigs.txt), expected", "FILE")
+        named = [p for p in paths if p.name == "rigs.txt"]
+        others = [p for p in paths if p.name != "rigs.txt"]
+        if len(named) > 1 or len(others) > 1:
+            raise InputError(paths[0], "COLMAP: one cameras file and one rigs.txt expected", "FILE")
+        rigs = named[0] if named else others[0].parent / "rigs.txt"
+        cams = others[0] if others else rigs.parent / "cameras.txt"
+    return [cams] + ([rigs] if rigs.exists() else [])
+
+
 def _hamlyn_files(folder: Path) -> list[Path]:
     """The files of a folder in the Hamlyn layout, in camera order: ``P.left.intrinsic.txt``,
     ``P.left.distortion.txt``, ``P.right.intrinsic.txt``, ``P.right.distortion.txt``, ``P.l2r.4x4``."""
-    found = [m for m in (_HAMLYN_K.match(q.name) for q in sorted(folder.iterdir())) if m]
+    found = [m for m in (_HAMLYN_K.match(q.name) for q in _listdir(folder)) if m]
     prefixes = sorted({m["prefix"] for m in found})
     if len(prefixes) != 1:
         raise InputError(folder, f"*.NAME.intrinsic.txt files with {len(prefixes)} different prefixes "
@@ -433,8 +452,8 @@ def _camera(name, size, K, dist, T, path, field) -> Camera:
 
 def _size(v, path, field) -> tuple[int, int]:
     ok = (isinstance(v, (list, tuple)) and len(v) == 2
-          and all(isinstance(x, (int, float)) and not isinstance(x, bool) and float(x).is_integer()
-                  and 0 < x <= _MAX_SIDE for x in v))
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x <= _MAX_SIDE
+                  and float(x).is_integer() for x in v))
     if not ok:
         raise InputError(path, f"[width, height] in pixels expected, got {show(v)}", field)
     return int(v[0]), int(v[1])

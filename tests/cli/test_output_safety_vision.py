@@ -155,12 +155,22 @@ def test_calibrate_never_replaces_a_colmap_model_it_did_not_write(tmp_path, syn_
 def test_calibrate_rerun_replaces_its_own_outputs_and_logs_at_info(tmp_path, syn_set, syn_target):  # noqa: F811
     folder = _syn_folder(tmp_path, syn_set)
     out = tmp_path / "out" / "rig.yaml"
-    for dist in ("4", "5"):
-        res = _run("calibrate", folder, "--target", syn_target, "-o", out, "--dist", dist)
+    from heartcv.camera import Camera, Rig
+    from heartcv.io import read_rig, write_rig
+
+    given = tmp_path / "given.yaml"
+    for run in (1, 2):
+        extra = [] if run == 1 else ["--intrinsics", given, "--hold", "all"]
+        res = _run("calibrate", folder, "--target", syn_target, "-o", out, "--dist", "5", *extra)
         assert res.exit_code == 0, res.output
         assert f"INFO heartcv.cli.calibrate: wrote {out}: 3 cameras" in res.stderr
         assert "WARNING heartcv.cli.calibrate: wrote" not in res.stderr
-    # the second run (k3 estimated: no camchain) removed the camchain of the first, its own file
+        if run == 1:  # the views cover under half of each image: k3 held at 0, a camchain is written
+            assert (out.parent / "rig_camchain.yaml").is_file()
+            rig = read_rig(out)
+            write_rig(given, Rig(tuple(Camera(c.name, c.width, c.height, c.K, [*c.dist[:4], 1e-3], c.cam_from_rig)
+                                       for c in rig.cameras)))
+    # the second run (intrinsics held with k3 = 1e-3: no camchain) removed the camchain of the first, its own file
     assert sorted(p.name for p in out.parent.iterdir()) == ["rig.yaml", "rig_colmap"]
     assert sorted(p.name for p in (out.parent / "rig_colmap").iterdir()) == ["cameras.txt", "heartcv-manifest.json",
                                                                             "rigs.txt"]

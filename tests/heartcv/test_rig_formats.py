@@ -88,6 +88,15 @@ def test_colmap_round_trip(tmp_path, colmap_rig):
         assert imp.rig.names == ["cam1", "cam2", "cam3", "cam4", "cam5"]
         _same_cameras(imp.rig, colmap_rig)
     assert imp.rig.cameras[0].dist.size == 0  # PINHOLE: no coefficients, as written
+    # a renamed cameras file with --format colmap: rigs.txt given with it, or found beside it
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "cams.txt").write_text((tmp_path / "model" / "cameras.txt").read_text())
+    assert plan_import([other / "cams.txt", tmp_path / "model" / "rigs.txt"], "colmap")[1] == [
+        other / "cams.txt", tmp_path / "model" / "rigs.txt"]
+    _same_cameras(_import([other / "cams.txt", tmp_path / "model" / "rigs.txt"], "colmap").rig, colmap_rig)
+    (other / "rigs.txt").write_text((tmp_path / "model" / "rigs.txt").read_text())
+    assert plan_import([other / "cams.txt"], "colmap")[1] == [other / "cams.txt", other / "rigs.txt"]
 
 
 def test_colmap_agrees_with_pycolmap(tmp_path, colmap_rig):
