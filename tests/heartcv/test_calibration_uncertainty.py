@@ -22,8 +22,8 @@ Two noise models:
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
+import os
 
 import numpy as np
 import pytest
