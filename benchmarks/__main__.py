@@ -1,4 +1,5 @@
-"""``python -m benchmarks {model,discretise,kf,estimators,fit,render,measure,files,all} [--json PATH] [--quick]``."""
+"""``python -m benchmarks {model,discretise,kf,estimators,fit,render,measure,files,calibrate,all} [--json PATH]
+[--quick]``."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import sys
 import time
 
 from ._harness import environment
+from .calibrate import bench_calibrate
 from .estimators import bench_estimators
 from .files import bench_files
 from .fit import bench_fit
@@ -19,8 +21,8 @@ from .model import blas_report
 from .render import bench_render
 
 SECTIONS = {**_MODEL_SECTIONS, "estimators": bench_estimators, "fit": bench_fit, "render": bench_render,
-            "measure": bench_measure, "files": bench_files}
-ORDER = ("model", "discretise", "kf", "estimators", "fit", "render", "measure", "files")
+            "measure": bench_measure, "files": bench_files, "calibrate": bench_calibrate}
+ORDER = ("model", "discretise", "kf", "estimators", "fit", "render", "measure", "files", "calibrate")
 
 
 def _json_default(o):

@@ -454,6 +454,9 @@ def _kfold(detections, used, spec, dist_size, ba, vidx, free, prior_mean, prior_
     shared = np.flatnonzero(used.sum(axis=0) >= 1)
     k = min(int(folds), shared.size // 2)
     out = {"folds": 0, "heldout_rms_px": None, "heldout_rms_px_per_camera": [None] * n_cam, "jackknife": None}
+    if int(folds) < 3:
+        out["skipped"] = f"folds = {int(folds)}: no k-fold check asked for (at least 3 folds make one)"
+        return out
     if k < 3:
         out["skipped"] = f"{shared.size} views: too few for a k-fold check (at least 6 needed)"
         return out
