@@ -6,8 +6,8 @@ Data sets (detections made once, outside the timing):
 
 * **synthetic**: the paper's rig (3 cameras 1920x1080, ``paper_rig``), 40 board poses of the issue's ChArUco target
   (``board_poses``, seed 5) and the projected corners with 0.1 px noise (``observe``, seed 1), from
-  ``tests/heartcv/test_calibration.py`` (the accuracy tests' data); a built-in copy of the generator when that
-  module cannot be imported. Synthetic frame times for the sync row: instant ``v`` at ``v`` seconds, each camera
+  ``tests/heartcv/test_calibration.py`` (the accuracy tests' data; ``python -m benchmarks`` runs from the repository
+  root, where the tests package imports). Synthetic frame times for the sync row: instant ``v`` at ``v`` seconds, each camera
   view offset by up to +-3 ms (seed 3).
 * **caliscope** (when ``../shared/data/caliscope_4cam_charuco`` exists): the inverted 4x5 ChArUco board detected
   (:func:`heartcv.detect.detect`) in every frame of the 4 videos of ``calibration/extrinsic`` (1280x720, 57 frames
@@ -59,13 +59,9 @@ ROWS = ("baseline", "folds=5", "folds=0", "times=")
 # -- data -------------------------------------------------------------------------------------------------------------
 def _synthetic():
     """(detections, spec, sizes, names, times, source) of the paper rig, 40 views, 0.1 px noise."""
-    try:
-        from tests.heartcv.test_calibration import CHARUCO, board_poses, observe, paper_rig
+    from tests.heartcv.test_calibration import CHARUCO, board_poses, observe, paper_rig  # run from the repo root
 
-        source = "tests.heartcv.test_calibration (paper_rig, board_poses seed 5, observe seed 1)"
-    except Exception as exc:  # the tests package not importable: the same construction, built in
-        CHARUCO, board_poses, observe, paper_rig = _generator()
-        source = f"built-in generator (tests.heartcv.test_calibration not importable: {type(exc).__name__})"
+    source = "tests.heartcv.test_calibration (paper_rig, board_poses seed 5, observe seed 1)"
     cams, c0w = paper_rig()
     poses = board_poses(40, np.random.default_rng(5), CHARUCO)
     dets = observe(cams, c0w, poses, CHARUCO, np.random.default_rng(1), noise=0.1)
@@ -73,63 +69,6 @@ def _synthetic():
     rng = np.random.default_rng(3)
     times = np.arange(n_views, dtype=float)[None] + rng.uniform(-3e-3, 3e-3, (n_cam, n_views))
     return dets, CHARUCO, [(c.width, c.height) for c in cams], [c.name for c in cams], times, source
-
-
-def _generator():
-    """A copy of the construction in tests/heartcv/test_calibration.py (paper rig, board poses, noisy corners)."""
-    from heartcv.calibration_ba import rotvec_to_matrix
-    from heartcv.camera import Camera, invert_pose, pose_matrix
-    from heartcv.detect import Detection
-    from heartcv.targets import TargetSpec
-
-    spec = TargetSpec("charuco", (11, 8), 0.012, 0.009, "DICT_5X5_250")
-
-    def look_at(centre):
-        z = -centre / np.linalg.norm(centre)
-        x = np.cross([0.0, -1.0, 0.0], z)
-        x /= np.linalg.norm(x)
-        R = np.stack([x, np.cross(z, x), z])
-        return pose_matrix(R, -R @ centre)
-
-    def paper_rig(n_cam=3, f=5970.0):
-        r, wd = 0.5 / np.sqrt(3), 0.53
-        h = np.sqrt(wd ** 2 - r ** 2)
-        cfw = [look_at(np.array([r * np.cos(a), r * np.sin(a), -h])) for a in np.pi / 2 + 2 * np.pi *
-               np.arange(n_cam) / n_cam]
-        w0 = invert_pose(cfw[0])
-        cams = []
-        for i, T in enumerate(cfw):
-            K = np.array([[f * (1 + 0.01 * i), 0, 959.5 + 10 * i], [0, f * (1 + 0.01 * i) * 1.001, 539.5 - 8 * i],
-                          [0, 0, 1]])
-            cams.append(Camera(f"cam{i}", 1920, 1080, K, np.array([-0.08, 0.4, 3e-4, -2e-4, 0.0]) * (1 + 0.2 * i),
-                               T @ w0))
-        return cams, cfw[0]
-
-    def board_poses(n, rng, spec, max_tilt_deg=60.0, spread=0.05):
-        centre = np.r_[spec.object_points()[:, :2].mean(axis=0), 0]
-        out = []
-        for _ in range(n):
-            axis = rng.normal(size=2)
-            axis /= np.linalg.norm(axis)
-            tilt = np.radians(rng.uniform(10, max_tilt_deg))
-            R = rotvec_to_matrix(np.r_[axis * tilt, 0]) @ rotvec_to_matrix(np.r_[0, 0, rng.uniform(-np.pi, np.pi)])
-            out.append(pose_matrix(R, rng.uniform(-spread, spread, 3) * [1, 1, 1.5] - R @ centre))
-        return out
-
-    def observe(cams, c0w, poses, spec, rng, noise=0.1, min_corners=6):
-        obj = spec.object_points()
-        dets = [[None] * len(poses) for _ in cams]
-        for v, T in enumerate(poses):
-            rfb = c0w @ T
-            X = obj @ rfb[:3, :3].T + rfb[:3, 3]
-            for c, cam in enumerate(cams):
-                uv = cam.project(X)
-                ok = np.isfinite(uv).all(axis=1) & cam.in_image(uv, margin=3)
-                if ok.sum() >= min_corners:
-                    dets[c][v] = Detection(np.flatnonzero(ok), uv[ok] + noise * rng.standard_normal((ok.sum(), 2)))
-        return dets
-
-    return spec, board_poses, observe, paper_rig
 
 
 def _caliscope():
