@@ -7,8 +7,8 @@ Data sets (detections made once, outside the timing):
 * **synthetic**: the paper's rig (3 cameras 1920x1080, ``paper_rig``), 40 board poses of the issue's ChArUco target
   (``board_poses``, seed 5) and the projected corners with 0.1 px noise (``observe``, seed 1), from
   ``tests/heartcv/test_calibration.py`` (the accuracy tests' data; ``python -m benchmarks`` runs from the repository
-  root, where the tests package imports). Synthetic frame times for the sync row: instant ``v`` at ``v`` seconds, each camera
-  view offset by up to +-3 ms (seed 3).
+  root, where the tests package imports). Synthetic frame times for the sync row: instant ``v`` at ``v`` seconds,
+  each camera view offset by up to +-3 ms (seed 3).
 * **caliscope** (when ``../shared/data/caliscope_4cam_charuco`` exists): the inverted 4x5 ChArUco board detected
   (:func:`heartcv.detect.detect`) in every frame of the 4 videos of ``calibration/extrinsic`` (1280x720, 57 frames
   each); the decoding and detection time per frame is reported separately. The sync row uses the recorder's

@@ -13,11 +13,17 @@ Two noise models:
 
 * white: independent Gaussian corner noise (0.2 px), the model the formal covariance assumes. Both the reported
   ``std`` (formal times the k-fold scale, never below 1) and ``std_formal`` are honest; the scaled one is slightly
-  conservative (the scale is ~1.05 on average).
-* per-view offsets: on top, every camera view's corners share one Gaussian offset (0.4 px per axis), as a
-  detector biased per image would give. The residuals stay small (the board pose absorbs much of it), so the
-  formal std, which assumes independent corners, is over-confident by ~2x; the k-fold jackknife sees the
-  view-to-view scatter and the scaled std is honest again.
+  conservative (the scale is ~1.01 in the median, up to ~1.3). 80 runs: RMS z of the scaled std 0.89 .. 0.95 per
+  group, of the formal std 0.94 .. 1.00.
+* per-view offsets: on top, every camera view's corners share one Gaussian offset (0.3 or 0.4 px per axis), as a
+  detector biased per image would give. The formal std, which assumes independent corners, is over-confident by
+  ~2x (80 runs: RMS z 1.9 .. 2.2 at 0.3 px, 2.1 .. 2.6 at 0.4 px); the k-fold jackknife sees the view-to-view
+  scatter and scales the std by ~1.7 .. 1.9 (median). The scaled std is within the 1.5x, but the translations
+  only just: 80 runs give RMS z 1.13 .. 1.36 at 0.3 px and 1.16 .. 1.43 at 0.4 px, translations the largest. One
+  scale for every parameter (the median jackknife / formal ratio) falls short for the translations, whose
+  formal std is the most over-confident, and the 5-fold scale varies from run to run (1.0 .. 3.4), which raises
+  the RMS of z further. So a 20-run sample at 0.4 px can exceed 1.5 (seed 2, runs 0..19: translation 1.56); the
+  fast test uses 0.3 px and 24 runs, the slow one 0.4 px and 80 runs.
 """
 
 from __future__ import annotations
@@ -99,7 +105,7 @@ def _assert_scaled_closer(mc):
     assert np.median(mc["scale"]) > 1.5  # the k-fold check saw it
 
 
-# -- fast: two cameras, 20 views, 20 runs ----------------------------------------------------------------------
+# -- fast: two cameras, 20 views, 20 runs of white noise and 24 with per-view offsets ---------------------------
 @pytest.fixture(scope="module")
 def white_runs():
     return monte_carlo(2, 20, 20, seed=1)
@@ -107,29 +113,38 @@ def white_runs():
 
 @pytest.fixture(scope="module")
 def offset_runs():
-    return monte_carlo(2, 20, 20, view_offset_px=0.4, seed=2)
+    return monte_carlo(2, 20, 24, view_offset_px=0.3, seed=2)
 
 
 def test_scaled_std_honest_white_noise(white_runs):
-    """Measured RMS z (20 runs): rotation 0.84, translation 0.99, focal 0.95, principal point 0.96."""
+    """Measured RMS z (20 runs): rotation 0.87, translation 0.79, focal 0.90, principal point 0.86."""
     _check_setup(white_runs)
     _assert_honest(white_runs["rms"]["std"], "scaled std, white noise")
     assert np.all(white_runs["scale"] >= 1) and np.median(white_runs["scale"]) < 1.2
 
 
 def test_formal_std_honest_white_noise(white_runs):
-    """The noise the formal covariance assumes: it is honest too (RMS z 0.88 .. 1.04)."""
+    """The noise the formal covariance assumes: it is honest too (20 runs: RMS z 0.82 .. 0.93)."""
     _assert_honest(white_runs["rms"]["std_formal"], "formal std, white noise")
 
 
 def test_scaled_std_honest_per_view_offsets(offset_runs):
-    """Corners sharing an offset per camera view (0.4 px): the formal std over-confident ~2x, the scaled one
-    honest."""
+    """Corners sharing an offset per camera view (0.3 px): the formal std over-confident ~2x (24 runs: RMS z
+    1.92 .. 2.12), the scaled one within 1.5x (1.22 .. 1.41; the translations nearest the bound, module
+    docstring)."""
     _check_setup(offset_runs)
     _assert_scaled_closer(offset_runs)
 
 
-# -- slow: three cameras, 24 views, 30 runs --------------------------------------------------------------------
+# -- slow: more runs, a larger offset, three cameras ----------------------------------------------------------
+@pytest.mark.slow
+def test_scaled_std_honest_per_view_offsets_80_runs():
+    """0.4 px offsets, 80 runs: formal RMS z 2.13 .. 2.56, scaled 1.16 .. 1.43 (translations)."""
+    mc = monte_carlo(2, 20, 80, view_offset_px=0.4, seed=2)
+    _check_setup(mc)
+    _assert_scaled_closer(mc)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("view_offset_px", [0.0, 0.4])
 def test_three_camera_rig_monte_carlo(view_offset_px):
