@@ -49,7 +49,7 @@ MAX_JOBS = 1024
               help="Keep the --intrinsics of these cameras (all: every camera): only poses are estimated.")
 @click.option("--timestamps", "timestamps_file", type=click.Path(dir_okay=False), default=None, metavar="CSV",
               help="Per-camera frame times of unsynchronised cameras (default: FOLDER/timestamps.csv when present; "
-                   "else the videos' own timestamps when they differ between cameras).")
+                   "else the cameras are taken as synchronised).")
 @click.option("--intrinsic-views", "intrinsic_folder", type=click.Path(file_okay=False), default=None,
               metavar="DIR", help="Recordings seen by one camera each (DIR/CAM/ images or DIR/CAM.mp4, named like "
                                   "the cameras): used for that camera's intrinsics.")

@@ -105,7 +105,7 @@ def main(ctx, verbose, quiet):
     # scikit-fem logs every assembly at INFO: library chatter, shown only with -v
     logging.getLogger("skfem").setLevel(logging.DEBUG if verbosity > 0 else logging.WARNING)
     # FFmpeg prints a line per damaged packet of a video (thousands for a corrupt file): silenced before the first
-    # video is opened, unless -v (docs/video-input.md)
+    # video is opened, unless -v (docs/cli.md §8.2)
     from heartcv.video import silence_ffmpeg
 
     silence_ffmpeg(verbose=verbosity > 0)

@@ -242,7 +242,9 @@ def calibrate_rig_detailed(detections, spec, image_sizes, *, names=None, view_na
             continue
         r_full = calibrate_intrinsics(dets, spec, size, start=given[c], **kw)
         full.append(r_full)
-        if given[c] is None and not free_dist[c].all():
+        if given[c] is not None:  # start from the given intrinsics: board poses with them
+            r = calibrate_intrinsics(dets, spec, size, held=given[c], **kw)
+        elif not free_dist[c].all():
             # the start of the joint refinement: what the coverage supports, principal point at the centre
             r = calibrate_intrinsics(dets, spec, size, free_dist=free_dist[c], fix_principal_point=True, **kw)
         else:

@@ -16,7 +16,7 @@ A sequence or calibration folder may hold one video file per camera. Reading the
 
 Videos are opened with OpenCV's FFmpeg backend only (``cv2.CAP_FFMPEG``, when this OpenCV build has it): the
 other backends OpenCV would try on failure (its own MJPEG/AVI reader, image sequences, V4L2) print their own
-complaints about a file that is not theirs. ``docs/video-input.md`` has the experiments behind these choices.
+complaints about a file that is not theirs. docs/cli.md §8.2 has the experiments behind these choices.
 """
 
 from __future__ import annotations

@@ -191,3 +191,21 @@ def test_truncated_video_refused_before_processing(tmp_path):
     assert "cam1.mp4" in res.output and "detecting" not in res.output
     assert len(res.output.strip().splitlines()) == 1, res.output
     assert not (tmp_path / "rig.yaml").exists()
+
+
+@needs_data
+def test_given_intrinsics_start_and_keep_the_unsupported_terms(board, tmp_path):
+    """--intrinsics without --hold: the terms the coverage does not support stay at the given values (k2 p1 p2 k3),
+    the others are refined; measured: worst rotation 1.84 deg."""
+    imported = tmp_path / "caliscope.yaml"
+    assert _run("rig", "import", DATA / "camera_array.toml", "-o", imported).exit_code == 0
+    out = tmp_path / "rig.yaml"
+    res = _run("calibrate", VIDEOS, "--target", board, "-o", out, "--intrinsics", imported)
+    assert res.exit_code == 0, res.output
+    from heartcv.io import read_rig
+
+    rig, ref = read_rig(out), _reference()
+    for k in range(4):
+        np.testing.assert_array_equal(rig[f"cam_{k}"].dist[1:], ref[k][1][1:])
+        assert rig[f"cam_{k}"].K[0, 0] != ref[k][0][0, 0]  # refined
+    assert max(r for r, _ in _pair_errors(rig).values()) < 2.0

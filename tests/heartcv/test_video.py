@@ -1,4 +1,4 @@
-"""Video input (heartcv.video; docs/video-input.md): every video is decoded once before any processing and refused,
+"""Video input (heartcv.video; docs/cli.md §8.2): every video is decoded once before any processing and refused,
 naming the file, when it cannot be opened, is truncated or corrupt; FFmpeg's decoder messages are silenced; frame
 ``k`` is the ``k``-th decoded frame everywhere; per-camera frame times come from a multi-camera timestamps.csv.
 
