@@ -23,7 +23,8 @@ Two noise models:
   scale for every parameter (the median jackknife / formal ratio) falls short for the translations, whose
   formal std is the most over-confident, and the 5-fold scale varies from run to run (1.0 .. 3.4), which raises
   the RMS of z further. So a 20-run sample at 0.4 px can exceed 1.5 (seed 2, runs 0..19: translation 1.56); the
-  fast test uses 0.3 px and 24 runs, the slow one 0.4 px and 80 runs.
+  fast test uses 0.3 px and 24 runs, the slow one 0.4 px and 80 runs. Three cameras (slow, 0.4 px, 90 runs): scaled
+  1.19 .. 1.41, the focal lengths nearest the bound (camera 1's fx, fy 1.6 alone; 30 of the runs: focal 1.58).
 """
 
 from __future__ import annotations
@@ -146,9 +147,13 @@ def test_scaled_std_honest_per_view_offsets_80_runs():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("view_offset_px", [0.0, 0.4])
-def test_three_camera_rig_monte_carlo(view_offset_px):
-    mc = monte_carlo(3, 24, 30, view_offset_px=view_offset_px, seed=3)
+@pytest.mark.parametrize(("view_offset_px", "n_runs"), [(0.0, 30), (0.4, 90)])
+def test_three_camera_rig_monte_carlo(view_offset_px, n_runs):
+    """Three cameras, 24 views. White noise, 30 runs: RMS z of the scaled std 0.97 .. 1.00, of the formal std
+    0.99 .. 1.02. Offsets of 0.4 px, 90 runs: formal 2.36 .. 2.75, scaled 1.19 .. 1.41 (focal lengths the largest:
+    camera 1's fx and fy 1.6 alone); 30 runs of these (seed 3, runs 0..29) gave focal 1.58, over the bound, hence
+    the 90 runs (the criterion is about the expected RMS z; 30 runs estimate it to ~+-0.1)."""
+    mc = monte_carlo(3, 24, n_runs, view_offset_px=view_offset_px, seed=3)
     _check_setup(mc)
     if view_offset_px:
         _assert_scaled_closer(mc)
