@@ -25,6 +25,27 @@ MAX_COUNT = 10**6          # runs, steps, frames, starts, workers...
 MAX_IMAGE_SIDE = 16384     # pixels
 
 
+class IntPair(click.ParamType):
+    """``AxB`` (e.g. ``11x8`` or ``360x288``) -> (a, b), each in 1 .. ``limit`` (an int, or a callable giving it,
+    for limits that live in modules imported only when the option is used)."""
+
+    def __init__(self, metavar: str, example: str, limit, unit: str = ""):
+        self.name, self.example, self.limit, self.unit = metavar, example, limit, unit
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        parts = str(value).lower().replace("×", "x").split("x")
+        try:
+            a, b = (int(p) for p in parts)
+        except ValueError:
+            self.fail(f"{self.name} expected (e.g. {self.example}), got {value!r}", param, ctx)
+        hi = self.limit() if callable(self.limit) else self.limit
+        if not (1 <= a <= hi and 1 <= b <= hi):
+            self.fail(f"{a}x{b}: 1 to {hi}{self.unit} each way expected", param, ctx)
+        return a, b
+
+
 class Float(click.ParamType):
     """A finite float in ``[lo, hi]`` (open ends with ``lo_open``/``hi_open``); NaN and infinities are refused,
     which click.FloatRange lets through."""

@@ -9,12 +9,13 @@ Both write one rig file (``heartcv.io.write_rig``), guarded before any work (doc
 
 from __future__ import annotations
 
+import functools
 import logging
 from pathlib import Path
 
 import click
 
-from .options import MAX_IMAGE_SIDE, BadInput, Float, emit_json, guard_outputs, json_opt
+from .options import MAX_IMAGE_SIDE, BadInput, Float, IntPair, emit_json, guard_outputs, json_opt
 
 log = logging.getLogger(__name__)
 
@@ -24,22 +25,7 @@ UNITS = ("m", "cm", "mm")
 MAX_BASELINE_M = 2.0
 
 
-class ImageSize(click.ParamType):
-    """``WxH`` (e.g. ``360x288``) -> (width, height), each in 1 .. MAX_IMAGE_SIDE pixels."""
-
-    name = "WxH"
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, tuple):
-            return value
-        parts = str(value).lower().replace("×", "x").split("x")
-        try:
-            w, h = (int(p) for p in parts)
-        except ValueError:
-            self.fail(f"WxH expected (e.g. 360x288), got {value!r}", param, ctx)
-        if not (1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE):
-            self.fail(f"{w}x{h}: 1 to {MAX_IMAGE_SIDE} px each way expected", param, ctx)
-        return w, h
+ImageSize = functools.partial(IntPair, "WxH", "360x288", MAX_IMAGE_SIDE, " px")  # (width, height)
 
 
 class NameList(click.ParamType):

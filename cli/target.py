@@ -2,34 +2,24 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 from pathlib import Path
 
 import click
 
-from .options import BadInput, Float, emit_json, guard_outputs, json_opt
+from .options import BadInput, Float, IntPair, emit_json, guard_outputs, json_opt
 
 log = logging.getLogger(__name__)
 
-class GridSize(click.ParamType):
-    """``COLSxROWS`` (e.g. ``11x8``) -> (cols, rows), each in 1 .. ``heartcv.targets.MAX_SQUARES`` (TargetSpec
-    refuses fewer than 3 with the reason)."""
+def _max_squares():
+    from heartcv.targets import MAX_SQUARES
 
-    name = "COLSxROWS"
+    return MAX_SQUARES
 
-    def convert(self, value, param, ctx):
-        if isinstance(value, tuple):
-            return value
-        parts = str(value).lower().replace("×", "x").split("x")
-        try:
-            cols, rows = (int(p) for p in parts)
-        except ValueError:
-            self.fail(f"COLSxROWS expected (e.g. 11x8), got {value!r}", param, ctx)
-        from heartcv.targets import MAX_SQUARES
 
-        if not (1 <= cols <= MAX_SQUARES and 1 <= rows <= MAX_SQUARES):
-            self.fail(f"{cols}x{rows}: 1 to {MAX_SQUARES} each way expected", param, ctx)
-        return cols, rows
+# COLSxROWS -> (cols, rows), each in 1 .. MAX_SQUARES (TargetSpec refuses fewer than 3 with the reason)
+GridSize = functools.partial(IntPair, "COLSxROWS", "11x8", _max_squares)
 
 
 @click.command()
