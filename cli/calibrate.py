@@ -87,11 +87,11 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     infos = _check_videos(cameras + [e for e in extra if e[1] == "video"])
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     jobs = jobs or min(os.cpu_count() or 1, 8)
-    detections, sizes, view_names, used_files = _detect_all(cameras, spec, every, jobs, verbosity)
+    detections, sizes, view_names, used_files = _detect_all(cameras, spec, every, jobs, verbosity, infos)
     times = _frame_times(timestamps_file, Path(folder), cameras, infos, every, len(view_names))
     if extra:
         detections, view_names, more = _append_intrinsic_views(detections, view_names, extra, names, spec, jobs,
-                                                               verbosity)
+                                                               verbosity, infos)
         used_files = sorted(set(used_files) | set(more))
         if times is not None:
             import numpy as np
@@ -232,14 +232,14 @@ def _find_intrinsic_views(folder, names):
     return out
 
 
-def _append_intrinsic_views(detections, view_names, extra, names, spec, jobs, verbosity):
+def _append_intrinsic_views(detections, view_names, extra, names, spec, jobs, verbosity, infos):
     """Detections of the intrinsic recordings appended as views seen by one camera each."""
     dets = [list(d) for d in detections]
     view_names = list(view_names)
     files = []
     for name, kind, paths in extra:
         c = names.index(name)
-        found, _, vnames, used = _detect_all([(name, kind, paths)], spec, 1, jobs, verbosity)
+        found, _, vnames, used = _detect_all([(name, kind, paths)], spec, 1, jobs, verbosity, infos)
         for v, d in enumerate(found[0]):
             for k in range(len(dets)):
                 dets[k].append(d if k == c else None)
@@ -281,10 +281,10 @@ def _instants(cameras, every):
     return names, per_cam
 
 
-def _detect_all(cameras, spec, every, jobs, verbosity):
+def _detect_all(cameras, spec, every, jobs, verbosity, infos=None):
     """Detections [camera][instant], image sizes (most common per camera), instant names, files used."""
     if cameras[0][1] == "video":
-        return _detect_videos(cameras, spec, every, jobs, verbosity)
+        return _detect_videos(cameras, spec, every, jobs, verbosity, infos)
     names, per_cam = _instants(cameras, every)
     tasks = [(c, v, per_cam[c].get(n)) for c in range(len(cameras)) for v, n in enumerate(names)]
     tasks = [t for t in tasks if t[2] is not None]
@@ -311,22 +311,33 @@ def _read_and_detect(path, spec):
     return (img.shape[1], img.shape[0]), detect(img, spec)
 
 
-def _detect_videos(cameras, spec, every, jobs, verbosity):
-    """Detections in every ``every``-th frame of each camera's video (probed before: :func:`_check_videos`)."""
+def _detect_videos(cameras, spec, every, jobs, verbosity, infos=None):
+    """Detections in every ``every``-th frame of each camera's video (probed before: :func:`_check_videos`, whose
+    frame counts size the progress bar). At most ``2 jobs`` decoded frames wait for detection at a time."""
     from heartcv.detect import detect
     from heartcv.video import iter_frames
+
+    def detected(pool, path):
+        pending = []
+        for k, frame in iter_frames(path, every):
+            pending.append((k // every, (frame.shape[1], frame.shape[0]), pool.submit(detect, frame, spec)))
+            if len(pending) >= 2 * jobs:
+                v, size, fut = pending.pop(0)
+                yield v, size, fut.result()
+        for v, size, fut in pending:
+            yield v, size, fut.result()
 
     results = {}
     with ThreadPoolExecutor(jobs) as pool:
         for c, (name, _, (path,)) in enumerate(cameras):
-            futures = []
-            for k, frame in iter_frames(path, every):
-                futures.append((k // every, (frame.shape[1], frame.shape[0]), pool.submit(detect, frame, spec)))
-            with progress(futures, f"detecting {name}", len(futures), verbosity) as it:
-                for v, size, fut in it:
-                    results[c, v] = (size, fut.result())
-            log.info("%s: target found in %d of %d frames used", name,
-                     sum(len(results[c, v][1]) > 0 for v, _, _ in futures), len(futures))
+            info = (infos or {}).get(str(path))
+            n = None if info is None else -(-info.n_frames // every)
+            found = used = 0
+            with progress(detected(pool, path), f"detecting {name}", n, verbosity) as it:
+                for v, size, det in it:
+                    results[c, v] = (size, det)
+                    found, used = found + (len(det) > 0), used + 1
+            log.info("%s: target found in %d of %d frames used", name, found, used)
     n_views = max(v for _, v in results) + 1 if results else 0
     per_cam = [sum(1 for cc, _ in results if cc == c) for c in range(len(cameras))]
     if len(set(per_cam)) > 1:
