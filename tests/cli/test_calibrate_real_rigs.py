@@ -151,7 +151,67 @@ def test_held_intrinsics_from_caliscope(board, tmp_path):
     assert max(r for r, _ in errs.values()) < 1.0, errs
     worst = max(abs(d) for _, d in errs.values())
     if worst >= 0.02:  # the issue asks 2 %; measured 2.3 % on the pair cam_0-cam_3
-        pytest.xfail(f"camera-centre distance {100 * worst:.1f} % from caliscope's (the issue asks 2 %)")
+        pytest.xfail(f"camera-centre distance {100 * worst:.1f} % from caliscope's (the issue asks 2 %): "
+                     f"caliscope's cam_3 corners make its board 1.3 % larger than heartcv's "
+                     f"(test_held_intrinsics_with_caliscopes_corners, test_detect.py small boards)")
+
+
+def _caliscope_corners():
+    """caliscope's own corner detections (CHARUCO/xy_CHARUCO.csv, OpenCV's ChArUco corner ids = heartcv's) as
+    detections [camera][instant], and the frame times (timestamps.csv) on the same instants."""
+    import csv
+
+    from heartcv.detect import Detection
+
+    rows = list(csv.DictReader(open(VIDEOS / "CHARUCO" / "xy_CHARUCO.csv")))
+    stamps = list(csv.DictReader(open(VIDEOS / "timestamps.csv")))
+    instants = sorted({int(r["sync_index"]) for r in stamps})
+    times = np.full((4, len(instants)), np.nan)
+    for r in stamps:
+        times[int(r["cam_id"]), instants.index(int(r["sync_index"]))] = float(r["frame_time"])
+    found = {}
+    for r in rows:
+        found.setdefault((int(r["cam_id"]), int(r["sync_index"])), []).append(
+            (int(r["keypoint_id"]), float(r["img_loc_x"]), float(r["img_loc_y"])))
+    dets = [[None] * len(instants) for _ in range(4)]
+    for (c, s), corners in found.items():
+        corners.sort()
+        dets[c][instants.index(s)] = Detection(np.array([k for k, _, _ in corners]),
+                                               np.array([[x, y] for _, x, y in corners]), markers=len(corners))
+    return dets, times
+
+
+@needs_data
+def test_held_intrinsics_with_caliscopes_corners(board):
+    """The refinement is not what separates heartcv from caliscope: fed caliscope's own corners with its
+    intrinsics held, it gives caliscope's rotations within 1 deg and distances within 2 % (measured 0.77 deg,
+    1.1 %; heartcv's corners: 2.3 % on cam_0-cam_3). caliscope refines every corner over an 11 px half-window,
+    wider than cam_3's squares allow (~26 px): its cam_3 corners fit a homography per view to 1.2 px RMS against
+    heartcv's 0.18 px, and make the board 1.3 % larger in cam_3's images (hence cam_3 closer)."""
+    import cv2
+
+    from heartcv.calibration_rig import calibrate_rig_detailed
+    from heartcv.io import read_target
+
+    dets, times = _caliscope_corners()
+    ref = _reference()
+    spec = read_target(board)
+    given = [(ref[k][0], ref[k][1]) for k in range(4)]
+    cal = calibrate_rig_detailed(dets, spec, [(1280, 720)] * 4, names=[f"cam_{k}" for k in range(4)],
+                                 given=given, hold=[True] * 4, times=times, folds=0)
+    errs = _pair_errors(cal.rig)
+    assert max(r for r, _ in errs.values()) < 1.0, errs
+    assert max(abs(d) for _, d in errs.values()) < 0.02, errs
+
+    # per-view homography RMS of the corners: caliscope's cam_3 corners are the noisy ones
+    obj = spec.object_points()[:, :2]
+
+    def homography_rms(d):
+        H, _ = cv2.findHomography(obj[d.ids], d.uv, 0)
+        return np.sum((cv2.perspectiveTransform(obj[d.ids][None], H)[0] - d.uv) ** 2, axis=1)
+
+    cam3 = np.concatenate([homography_rms(d) for d in dets[3] if d is not None and len(d) >= 6])
+    assert np.sqrt(cam3.mean()) > 0.8
 
 
 @needs_data
