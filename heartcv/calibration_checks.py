@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["image_coverage", "coverage_mask", "distortion_terms", "distortion_fold", "sync_displacement",
-           "sync_weights", "jackknife_std", "HELD_DIST_SIGMA", "COVERAGE_FULL", "COVERAGE_K2", "SYNC_DROP_PX",
-           "SYNC_SIGMA_PX", "PP_PRIOR_FRACTION"]
+           "sync_weights", "jackknife_std", "CONSISTENCY_RATIO", "HELD_DIST_SIGMA", "COVERAGE_FULL", "COVERAGE_K2",
+           "SYNC_DROP_PX", "SYNC_SIGMA_PX", "PP_PRIOR_FRACTION"]
 
 # coverage (fraction of the image area under the corners) needed for ...
 COVERAGE_K2 = 0.20    # ... k2 and the tangential terms (below it: k1 only)
@@ -34,6 +34,9 @@ SYNC_DROP_PX = 5.0    # camera views whose board moved more than this (median ov
 # covariance of the others: the terms of real lenses (webcams, endoscopes, machine-vision lenses) seldom pass
 # |k2|, |k3| ~ 0.3 or |p| ~ 0.005 when k1 is fitted (OpenCV's sample cameras, caliscope's, Kalibr's examples)
 HELD_DIST_SIGMA = (0.0, 0.15, 0.003, 0.003, 0.15, 0.15, 0.15, 0.15)
+# a camera whose RMS in the joint refinement passes this multiple of its RMS calibrated alone (its own board poses)
+# is told that the cameras disagree about the board's pose at each instant (consistent cameras: ratio 1.0-1.3)
+CONSISTENCY_RATIO = 2.0
 COVERAGE_GRID = 256   # coverage is counted on a grid of at most this many cells along the longer side
 
 

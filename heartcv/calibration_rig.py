@@ -41,6 +41,7 @@ from .calibration import (
 )
 from .calibration_ba import RigProblem, bundle_adjust
 from .calibration_checks import (
+    CONSISTENCY_RATIO,
     HELD_DIST_SIGMA,
     PP_PRIOR_FRACTION,
     SYNC_DROP_PX,
@@ -691,6 +692,14 @@ def _result(prob, ba, names, view_names, image_sizes, used, view_rms, intr, spec
         }
         if heldout is not None:
             cam_meta[n]["heldout_rms_px"] = heldout
+    inconsistent = [f"{n} {cam_meta[n]['rms_px']:.2f} px against {cam_meta[n]['intrinsics_only_rms_px']:.2f} px"
+                    for n in names if cam_meta[n]["rms_px"] > CONSISTENCY_RATIO * cam_meta[n]["intrinsics_only_rms_px"]]
+    if inconsistent:
+        warnings.append(f"the cameras disagree about the board's pose at the same instant: the joint RMS is more than "
+                        f"{CONSISTENCY_RATIO:g} x the RMS of each camera calibrated alone ({', '.join(inconsistent)}); "
+                        f"exposures not simultaneous (unsynchronised cameras, rolling shutter) or a board that flexes "
+                        f"while it moves. The standard deviations describe the spread of these views, not this "
+                        f"systematic error: the intrinsics of a weakly covered camera may be off by several of them")
     rig = Rig(tuple(cameras))
     meta = {
         "rms_px": rms,

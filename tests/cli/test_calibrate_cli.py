@@ -56,6 +56,8 @@ def test_calibrate_stereo_pairs(tmp_path, target):
     summary = json.loads(res.stdout)
     assert summary["rms_px"] < 0.45 * 1.1
     assert summary["baselines_m"] == {"cam0-cam1": pytest.approx(0.0835, abs=0.0005)}
+    # synchronised stills of a rigid board: joint RMS within 1.2 x each camera's alone, no disagreement warning
+    assert not any("cameras disagree" in w for w in summary["warnings"]), summary["warnings"]
     assert [c["name"] for c in summary["cameras"]] == ["cam0", "cam1"]
     for c in summary["cameras"]:
         assert {"name", "rms_px", "fx", "fy", "cx", "cy", "views_used"} <= set(c)
