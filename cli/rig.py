@@ -128,8 +128,9 @@ def import_(files, fmt, units, names, image_sizes, output, as_json):
               help="Principal point in pixels, OpenCV convention (default: the image centre ((W-1)/2, (H-1)/2)).")
 @click.option("--baseline-m", type=Float(0, 1e3, lo_open=True), required=True,
               help="Distance between the two projection centres, in metres (at most 2 m).")
-@click.option("--names", type=NameList(), default="left,right", show_default=True, metavar="LEFT,RIGHT",
-              help="The two camera names.")
+@click.option("--names", type=NameList(), default="cam0,cam1", show_default=True, metavar="LEFT,RIGHT",
+              help="The two camera names, left first (default: heartcv's folder names, as `heartcv measure` reads "
+                   "them: SEQUENCE/cam0, SEQUENCE/cam1).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Rig file to write (.yaml).")
 @json_opt
 def rectified(image_size, focal_px, principal_point, baseline_m, names, output, as_json):

@@ -388,7 +388,7 @@ def rename_cameras(rig: Rig, names) -> Rig:
 
 
 def rectified_rig(width: int, height: int, focal_px: float, baseline_m: float, principal_point=None,
-                  names=("left", "right")) -> Rig:
+                  names=("cam0", "cam1")) -> Rig:
     """Two ideal cameras of a rectified stereo pair: ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]`` for both (principal
     point at the image centre ``((W - 1) / 2, (H - 1) / 2)`` unless given, OpenCV convention), no distortion, the
     left camera the rig frame and the right one at ``cam_from_rig = [I | (-B, 0, 0)]`` (its centre B to the right)."""

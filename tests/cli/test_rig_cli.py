@@ -197,11 +197,11 @@ def test_rectified(tmp_path):
                out, "--json")
     assert res.exit_code == 0, res.output
     back = read_rig(out)
-    assert back.names == ["left", "right"] and back.meta["producer"] == "heartcv rig rectified"
+    assert back.names == ["cam0", "cam1"] and back.meta["producer"] == "heartcv rig rectified"
     assert back[0].K.tolist() == back[1].K.tolist() == [[390.0, 0, 179.5], [0, 390.0, 143.5], [0, 0, 1]]
     np.testing.assert_array_equal(back[1].cam_from_rig, pose_matrix(np.eye(3), [-0.0055, 0, 0]))
     assert not back[0].dist.any() and not back[1].dist.any()
-    assert json.loads(res.stdout)["baselines_m"] == {"left-right": 0.0055}
+    assert json.loads(res.stdout)["baselines_m"] == {"cam0-cam1": 0.0055}
     res = _run("rig", "rectified", "--image-size", "360x288", "--focal-px", "390", "--baseline-m", "0.0055",
                "--principal-point", "170,150", "--names", "l,r", "-o", out)
     assert res.exit_code == 0, res.output
