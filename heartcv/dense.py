@@ -85,7 +85,7 @@ import numpy as np
 
 from .camera import Camera, Rig, invert_pose
 from .features import saturation_mask
-from .measure import FrameStats, MeasureFailed, MeasureResult, SequenceRun
+from .measure import MeasureFailed, MeasureResult, SequenceRun, assemble_result, run_frames
 
 __all__ = ["DenseOptions", "StereoPair", "DenseTracker", "dense_sequence", "refine_disparity", "default_grid_step",
            "default_block_size"]
@@ -626,7 +626,7 @@ class DenseTracker:
         self.alive = np.zeros(0, bool)
         self.last_seen = np.zeros(0, np.int64)
         self._prev = None                       # last rectified reference image
-        self._records = []                      # per instant: (track indices, X, unit cov, uv (n, C, 2) float32)
+        self._records = []                      # per instant: (track indices, X, unit cov, rms 0, uv (n, C, 2))
         self._frames = []
         self._reseeded = []
         self.timings = {"tracking": 0.0, "triangulation": 0.0, "detection": 0.0}
@@ -805,7 +805,7 @@ class DenseTracker:
         a, b = p.original_pixels(uvr, d, X)
         uv[:, p.ref] = a
         uv[:, p.other] = b
-        self._records.append((idx, X, cov, uv))
+        self._records.append((idx, X, cov, np.zeros(len(idx)), uv))
         return idx
 
     def _expire(self, s):
@@ -815,7 +815,7 @@ class DenseTracker:
         """Record an instant that could not be processed (all points missing in it)."""
         self._frames.append(int(frame_index))
         self._reseeded.append(False)
-        self._records.append((np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)),
+        self._records.append((np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0),
                               np.zeros((0, len(self.cameras), 2), np.float32)))
         self.problems.append(reason)
 
@@ -827,32 +827,24 @@ class DenseTracker:
             return float("nan")
         return max(float(np.sqrt(self._sq_resid / self._n_resid / 2)), self.opt.min_pixel_sigma)
 
+    @property
+    def detected(self) -> bool:
+        """Whether the last instant seeded new points."""
+        return bool(self._reseeded and self._reseeded[-1])
+
+    def unusable(self, images) -> str | None:
+        """Why an instant cannot be processed, or None: fewer than two images, or no image of the reference camera
+        or of its partner."""
+        p = self.pair
+        if sum(im is not None for im in images) < 2:
+            return "fewer than two readable images"
+        if images[p.ref] is None or images[p.other] is None:
+            return (f"no image of camera {self.cameras[p.ref if images[p.ref] is None else p.other].name} "
+                    "(dense matching needs the reference camera and its partner)")
+        return None
+
     def result(self) -> MeasureResult:
-        K = len(self._frames)
-        P = len(self.birth)
-        C = len(self.cameras)
-        pos = np.full((K, P, 3), np.nan)
-        cov = np.full((K, P, 3, 3), np.nan)
-        uv = np.full((K, P, C, 2), np.nan, np.float32)
-        rms = np.full((K, P), np.nan)
-        views = np.zeros((K, P), np.int64)
-        for k, (i, X, Cu, u) in enumerate(self._records):
-            pos[k, i] = X
-            cov[k, i] = Cu
-            uv[k, i] = u
-            rms[k, i] = 0.0
-            views[k, i] = 2
-        if self.opt.pixel_sigma is not None:
-            sigma, estimated = float(self.opt.pixel_sigma), False
-        else:
-            sigma, estimated = self.estimated_sigma(), True
-            if not np.isfinite(sigma):
-                sigma = self.opt.min_pixel_sigma
-        cov *= sigma ** 2
-        ref = pos[self.birth, np.arange(P)] if P else np.zeros((0, 3))
-        return MeasureResult(np.array(self._frames, np.int64), np.arange(P, dtype=np.int64), self.birth.copy(),
-                             pos, cov, ref, uv, views, rms, sigma, estimated, self.roi.copy(), dict(self.timings),
-                             list(self.problems))
+        return assemble_result(self, np.arange(len(self.birth)))
 
 
 # =====================================================================================================================
@@ -896,37 +888,9 @@ def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, r
     """
     t0 = clock()
     tracker = DenseTracker(cameras, options, roi=roi)
-    prev = clock()
-    setup_s = prev - t0
-    stats, problems = [], []
-    it = iter(frames)
-    p = tracker.pair
-    while True:
-        t_wait = clock()
-        item = next(it, None)
-        if item is None:
-            break
-        k, images, probs = item
-        t_got = clock()
-        problems.extend((int(k), str(m)) for m in probs)
-        before = dict(tracker.timings)
-        n_images = sum(im is not None for im in images)
-        skipped = n_images < 2 or images[p.ref] is None or images[p.other] is None
-        if skipped:
-            why = ("fewer than two readable images" if n_images < 2 else
-                   f"no image of camera {tracker.cameras[p.ref if images[p.ref] is None else p.other].name} "
-                   "(dense matching needs the reference camera and its partner)")
-            tracker.skip(k, f"frame {k}: {why}")
-            seen = 0
-        else:
-            seen = tracker.step(k, images)
-        now = clock()
-        d = {key: tracker.timings[key] - before[key] for key in before}
-        stats.append(FrameStats(int(k), t_got - t_wait, now - prev, d["tracking"], d["triangulation"],
-                                d["detection"], int(seen), bool(tracker._reseeded[-1]), skipped))
-        prev = now
-    res = tracker.result()
+    run = run_frames(tracker, frames, clock, clock() - t0)
+    res = run.result
     if res.point_ids.size == 0 or not res.seen.any():
         raise MeasureFailed(f"no surface point could be measured densely (region of interest {int(res.roi.sum())} "
-                            f"px in camera {tracker.cameras[p.ref].name})")
-    return SequenceRun(res, tuple(stats), tuple(problems), setup_s)
+                            f"px in camera {tracker.cameras[tracker.pair.ref].name})")
+    return run

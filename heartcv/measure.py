@@ -43,7 +43,7 @@ from .tracker.files import InputError
 from .triangulation import triangulate
 
 __all__ = ["MeasureOptions", "MeasureResult", "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
-           "ROI_FRAMES", "reference_frames", "auto_region", "measure_sequence"]
+           "ROI_FRAMES", "reference_frames", "auto_region", "measure_sequence", "run_frames", "assemble_result"]
 
 # Frames of the reference camera from which the automatic region of interest is computed (every third of the
 # first 30: the surface moves enough between them to tell it from the static background)
@@ -185,6 +185,7 @@ class Measurer:
         self._sq_resid = 0.0
         self._dof = 0
         self._last_spawn = None
+        self.detected = False         # whether the last step detected and matched new points
 
     # -- one frame ------------------------------------------------------------------------------------------------
     def step(self, frame_index, images):
@@ -210,7 +211,8 @@ class Measurer:
         ref = self.opt.ref_camera
         need = self.opt.refill_fraction * self.opt.max_points
         due = self._last_spawn is None or s - self._last_spawn >= self.opt.respawn_interval
-        if seen < need and due and images[ref] is not None and sum(im is not None for im in images) >= 2:
+        self.detected = seen < need and due and images[ref] is not None and sum(im is not None for im in images) >= 2
+        if self.detected:
             self._last_spawn = s
             seen += self._spawn(s, images, track_images)
         t3 = time.perf_counter()
@@ -368,33 +370,43 @@ class Measurer:
             return float("nan")
         return max(float(np.sqrt(self._sq_resid / self._dof)), self.opt.min_pixel_sigma)
 
+    def unusable(self, images) -> str | None:
+        """Why an instant cannot be processed (fewer than two readable images), or None."""
+        return "fewer than two readable images" if sum(im is not None for im in images) < 2 else None
+
     def result(self) -> MeasureResult:
-        K = len(self._frames)
-        P = len(self.ids)
-        C = len(self.cameras)
-        pos = np.full((K, P, 3), np.nan)
-        cov = np.full((K, P, 3, 3), np.nan)
-        uv = np.full((K, P, C, 2), np.nan, np.float32)
-        rms = np.full((K, P), np.nan)
-        views = np.zeros((K, P), np.int64)
-        for k, (i, X, Cu, r, u) in enumerate(self._records):
-            pos[k, i] = X
-            cov[k, i] = Cu
-            rms[k, i] = r
-            uv[k, i] = u
-            views[k, i] = np.isfinite(u[..., 0]).sum(axis=1)
-        if self.opt.pixel_sigma is not None:
-            sigma, estimated = float(self.opt.pixel_sigma), False
-        else:
-            sigma, estimated = self.estimated_sigma(), True
-            if not np.isfinite(sigma):
-                sigma = self.opt.min_pixel_sigma
-        cov *= sigma ** 2
-        ref = np.full((P, 3), np.nan)
-        for p in range(P):
-            ref[p] = pos[self.birth[p], p]
-        return MeasureResult(np.array(self._frames, np.int64), self.ids.copy(), self.birth.copy(), pos, cov, ref,
-                             uv, views, rms, sigma, estimated, self.roi, dict(self.timings), list(self.problems))
+        return assemble_result(self, self.ids)
+
+
+def assemble_result(tracker, ids) -> MeasureResult:
+    """The :class:`MeasureResult` of a frame-by-frame tracker (:class:`Measurer`, ``heartcv.dense.DenseTracker``)
+    from its per-instant records ``(track indices, X, unit covariance, reprojection RMS, uv (n, C, 2))``: the
+    covariances scaled by ``sigma^2``, sigma the option ``pixel_sigma`` or else ``tracker.estimated_sigma()``
+    (floored at ``min_pixel_sigma``)."""
+    K, P, C = len(tracker._frames), len(ids), len(tracker.cameras)
+    pos = np.full((K, P, 3), np.nan)
+    cov = np.full((K, P, 3, 3), np.nan)
+    uv = np.full((K, P, C, 2), np.nan, np.float32)
+    rms = np.full((K, P), np.nan)
+    views = np.zeros((K, P), np.int64)
+    for k, (i, X, Cu, r, u) in enumerate(tracker._records):
+        pos[k, i] = X
+        cov[k, i] = Cu
+        rms[k, i] = r
+        uv[k, i] = u
+        views[k, i] = np.isfinite(u[..., 0]).sum(axis=1)
+    opt = tracker.opt
+    if opt.pixel_sigma is not None:
+        sigma, estimated = float(opt.pixel_sigma), False
+    else:
+        sigma, estimated = tracker.estimated_sigma(), True
+        if not np.isfinite(sigma):
+            sigma = opt.min_pixel_sigma
+    cov *= sigma ** 2
+    ref = pos[tracker.birth, np.arange(P)] if P else np.zeros((0, 3))
+    return MeasureResult(np.array(tracker._frames, np.int64), np.asarray(ids, np.int64).copy(),
+                         tracker.birth.copy(), pos, cov, ref, uv, views, rms, sigma, estimated,
+                         np.asarray(tracker.roi, bool).copy(), dict(tracker.timings), list(tracker.problems))
 
 
 # =====================================================================================================================
@@ -522,10 +534,20 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
     if roi is None:
         roi = auto_region(roi_frames, options)
     measurer = Measurer(cameras, options, roi=roi, backend=backend)
-    prev = clock()
-    setup_s = prev - t0
+    run = run_frames(measurer, frames, clock, clock() - t0)
+    if run.result.point_ids.size == 0 or not run.result.seen.any():
+        raise MeasureFailed(f"no surface point could be tracked (region of interest {int(run.result.roi.sum())} px "
+                            f"in camera {measurer.cameras[options.ref_camera].name})")
+    return run
+
+
+def run_frames(tracker, frames, clock, setup_s) -> SequenceRun:
+    """Feed every instant of ``frames`` (``(k, images, problems)``) to a frame-by-frame tracker (:class:`Measurer`,
+    ``heartcv.dense.DenseTracker``: ``step``, ``skip``, ``unusable``, ``timings``, ``detected``, ``result``) and
+    time each instant; instants the tracker cannot use are recorded with all points missing."""
     stats, problems = [], []
     it = iter(frames)
+    prev = clock()
     while True:
         t_wait = clock()
         item = next(it, None)
@@ -534,20 +556,16 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
         k, images, probs = item
         t_got = clock()
         problems.extend((int(k), str(m)) for m in probs)
-        before, spawn = dict(measurer.timings), measurer._last_spawn
-        skipped = sum(im is not None for im in images) < 2
-        if skipped:
-            measurer.skip(k, f"frame {k}: fewer than two readable images")
+        before = dict(tracker.timings)
+        why = tracker.unusable(images)
+        if why is not None:
+            tracker.skip(k, f"frame {k}: {why}")
             seen = 0
         else:
-            seen = measurer.step(k, images)
+            seen = tracker.step(k, images)
         now = clock()
-        d = {key: measurer.timings[key] - before[key] for key in before}
+        d = {key: tracker.timings[key] - before[key] for key in before}
         stats.append(FrameStats(int(k), t_got - t_wait, now - prev, d["tracking"], d["triangulation"],
-                                d["detection"], int(seen), measurer._last_spawn != spawn, skipped))
+                                d["detection"], int(seen), why is None and tracker.detected, why is not None))
         prev = now
-    res = measurer.result()
-    if res.point_ids.size == 0 or not res.seen.any():
-        raise MeasureFailed(f"no surface point could be tracked (region of interest {int(res.roi.sum())} px in "
-                            f"camera {measurer.cameras[options.ref_camera].name})")
-    return SequenceRun(res, tuple(stats), tuple(problems), setup_s)
+    return SequenceRun(tracker.result(), tuple(stats), tuple(problems), setup_s)
