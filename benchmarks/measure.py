@@ -1,38 +1,48 @@
-"""Speed of the measurement stage on PNG input (issue 5 acceptance: frame triplets per second >= 5 on the
-project's 2-core machine, with the split between decoding, tracking and triangulation).
+"""Speed of the measurement stage on PNG input: the rendered 1080p trinocular phantom (issue 5 acceptance: frame
+triplets per second >= 5 on the project's 2-core machine, with the split between decoding, tracking and
+triangulation) and real 360x288 endoscope stereo (issue 14: the sparse default at >= 25 pairs per second, real time
+for PAL video; the dense mode's rate; GPU rates where a CUDA device is present; :mod:`benchmarks.measure_real`).
 
-One section, :func:`bench_measure`, in one process, everything under ``threadpoolctl.threadpool_limits(1)`` for
-the BLAS libraries (OpenCV keeps its own thread count, printed):
+One section, :func:`bench_measure`, in one process. Everything runs under ``threadpoolctl.threadpool_limits(1)``
+for the BLAS libraries (numpy's and scipy's OpenBLAS: **one BLAS thread**, printed; OpenCV keeps its own thread
+count, printed; torch is set to one thread for the kornia CPU backend). Part A, the phantom:
 
 1. **Input**: the phantom scene (``sample_sequences/phantom/scene.yaml``) rendered once to PNGs with
    ``heartcv render sequence ... --frames N --workers 2`` (N = 30, 10 in ``--quick``) into
    ``benchmarks/.cache/phantom_sequence`` (or ``$HEARTCV_BENCH_SEQ``); a folder that already holds at least N
    complete frame triplets and ``rig_truth.yaml`` is reused. The render time is printed, not measured. The rig is
    the true one (``rig_truth.yaml``): the speed does not depend on the calibration.
-2. **The stage as the CLI runs it** (``heartcv.measure.measure_sequence``, the one frame loop that
-   ``cli/measure.py`` calls, without writing the output files): ``open_frame_source``, a ``FrameReader`` (2 decoding
-   threads; it decodes the next triplet while the current one is processed), the region of interest from frames 0,
-   3, ... 27 of the reference camera, then ``Measurer.step`` per triplet with the CLI's defaults (``MeasureOptions``
-   with ``highpass_sigma=3``, 300 points, OpenCV backend). Runs: 3 (1 in ``--quick``); the run with the median wall
-   time is shown. Rates: *all frames* = N / wall from opening the reader to the last step (ROI setup, initial
-   detection and matching included; what the CLI reports as ``frames_per_s``) and *steady state* = (N - 1) / time of
-   frames 1 .. N-1 (without the one-off setup and first detection; later re-detections stay in). Split per triplet:
-   decode (time spent waiting for the reader), tracking (high-pass prefilter + template LK with forward-backward and
-   NCC checks), triangulation, detection/matching (``Measurer.timings`` differences per step) and the rest of the
-   loop.
-3. **Baselines in the same run** (median of 3 passes over the N triplets, 1 in ``--quick``): (a) decoding only:
-   ``cv2.imread(path, IMREAD_GRAYSCALE)`` of the 3 PNGs of a triplet in one thread and in 2 threads,
-   ``heartcv.io.read_image`` (with its truncation and size checks) in one thread, and ``FrameReader`` iterated
-   with nothing else to do; (b) plain frame-to-frame ``cv2.calcOpticalFlowPyrLK`` of the points the stage accepted
-   in the previous frame, each camera, full raw images, the stage's window/levels/criteria, no checks (the
-   cheapest tracker), and the stage's high-pass prefilter alone; (c) the initial detection
-   (``heartcv.features.detect_corners`` in the ROI minus highlights) and trinocular matching
-   (``heartcv.matching.match_points``) of frame 0 alone, with the OpenCV backend and, when ``import kornia``
-   works, ``get_backend('kornia', 'cpu')`` with ``torch.set_num_threads(1)``.
-   Ratios: stage per triplet / decode-only per triplet, tracking / plain LK, kornia / OpenCV.
+2. **The stage as the CLI runs it** (cli/measure.py ``_run``, without writing the output files):
+   ``open_frame_source``, a colour ``FrameReader`` (2 decoding threads; it decodes the next triplet while the current
+   one is processed), the automatic region of interest ``auto_region(reference_frames(reader.read, N, 0), opts)``
+   (frames 0, 3, ... of the reference camera), then ``measure_sequence(reader, cameras, opts, roi=roi)`` with the
+   CLI's defaults: ``MeasureOptions()`` resolved for the image size (``for_image``; checked against cli/measure.py's
+   own option builder where it can be called, the result printed), OpenCV backend. Runs: 3 (1 in ``--quick``); the
+   run with the median wall time is shown. Rates: *all frames* = N / wall from opening the source to the last step
+   (region of interest, initial detection and matching included; what the CLI reports as ``frames_per_s``) and
+   *steady state* = (N - 1) / time of frames 1 .. N-1 (without the one-off setup and first detection; later
+   re-detections stay in). Split per triplet: decode (time spent waiting for the reader), tracking (high-pass
+   prefilter + template LK with forward-backward and NCC checks), triangulation, detection/matching
+   (``FrameStats`` of ``run.frames``, i.e. ``Measurer.timings`` differences per step) and the rest of the loop.
+3. **Baselines in the same run** (median of 3 passes over the N triplets, 1 in ``--quick``): (a) decoding only,
+   colour as the stage reads it: ``cv2.imread(path, IMREAD_COLOR)`` of the 3 PNGs of a triplet in one thread and in
+   2 threads, ``heartcv.io.read_image(path, 'color')`` (with its truncation and size checks) in one thread, and
+   ``FrameReader`` iterated with nothing else to do; (b) plain frame-to-frame ``cv2.calcOpticalFlowPyrLK`` of the
+   points the stage accepted in the previous frame, each camera, full raw gray images, the stage's
+   window/levels/criteria, no checks (the cheapest tracker), and the stage's high-pass prefilter alone; (c) the
+   initial detection (``heartcv.features.detect_corners`` in the ROI minus clipped highlights) and trinocular
+   matching (``heartcv.matching.match_points`` with the stage's noise-adaptive NCC gate) of frame 0 alone, with the
+   OpenCV backend and, when ``import kornia`` works, ``get_backend('kornia', 'cpu')`` with
+   ``torch.set_num_threads(1)``. Ratios: stage per triplet / decode-only per triplet, tracking / plain LK, kornia /
+   OpenCV.
 4. The machine's load average (``os.getloadavg()``) before and after: other processes may share the 2 cores.
-"""
 
+Part B, the in-vivo heart (``../shared/data/hamlyn_invivo_heart``; skipped with the reason printed where it is not
+reachable): :func:`benchmarks.measure_real.bench_real` -- the sparse default (pairs/s, split, points per frame,
+median track span, reprojection RMS, candidates per gate; target 25 pairs/s), the dense mode (pairs/s, points per
+frame; target >= 1000 in every frame), the kornia backend on the CPU and on CUDA where present, decoding alone as
+the baseline, the load average; returned under ``real`` in the section's JSON.
+"""
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
@@ -46,6 +56,7 @@ import time
 import numpy as np
 
 from ._harness import blas_threads, fmt_ratio, fmt_time, measure, single_threaded_blas, table
+from .measure_real import bench_real
 
 __all__ = ["bench_measure", "SCENE", "CACHE", "TARGET_TRIPLETS_PER_S"]
 
@@ -53,7 +64,6 @@ REPO = Path(__file__).resolve().parents[1]
 SCENE = REPO / "sample_sequences" / "phantom" / "scene.yaml"
 CACHE = REPO / "benchmarks" / ".cache" / "phantom_sequence"
 TARGET_TRIPLETS_PER_S = 5.0
-CLI_HIGHPASS = 3.0      # heartcv measure --highpass default
 CLI_WORKERS = 2         # heartcv measure --workers default
 
 
@@ -98,29 +108,32 @@ def _sequence(n_frames: int):
 
 
 # -- the stage --------------------------------------------------------------------------------------------------
-def _options():
-    from heartcv.klt import LKParams
-    from heartcv.measure import MeasureOptions
+def _options(rig):
+    """What cli/measure.py runs with its defaults: ``MeasureOptions()`` resolved for the reference camera's image
+    size (``for_image``), and a note saying whether that equals the CLI's own builder."""
+    from .measure_real import _sparse_options
 
-    # what cli/measure.py builds with its defaults
-    return MeasureOptions(ref_camera=0, max_points=300, pixel_sigma=None, min_distance_px=15.0,
-                          corner_block_size=7, corner_quality=0.02, highpass_sigma=CLI_HIGHPASS, lk=LKParams())
+    ref = rig.cameras[0]
+    return _sparse_options(ref.width, ref.height)
 
 
-def _run_stage(folder: Path, rig, n: int) -> dict:
-    """One run of the measurement stage as ``heartcv measure`` drives it: a ``FrameReader`` fed to
-    :func:`heartcv.measure.measure_sequence` (the one frame loop), timed per frame."""
+def _run_stage(folder: Path, rig, n: int, opts) -> dict:
+    """One run of the measurement stage as ``heartcv measure`` drives it (cli/measure.py ``_run``): a colour
+    ``FrameReader``, the automatic region of interest, then :func:`heartcv.measure.measure_sequence` (the one frame
+    loop), timed per frame."""
     from heartcv.backend import get_backend
     from heartcv.io import FrameReader, open_frame_source
-    from heartcv.measure import measure_sequence, reference_frames
+    from heartcv.measure import auto_region, measure_sequence, reference_frames
 
-    opts = _options()
     t_start = time.perf_counter()
     source = open_frame_source(folder, cameras=rig.names)
-    with FrameReader(source, sizes=[c.size for c in rig.cameras], frames=range(n), workers=CLI_WORKERS) as reader:
+    with FrameReader(source, mode="color", sizes=[c.size for c in rig.cameras], frames=range(n),
+                     workers=CLI_WORKERS) as reader:
         first = reference_frames(reader.read, n, opts.ref_camera)
         t_roi_read = time.perf_counter()
-        run = measure_sequence(reader, rig.cameras, opts, roi_frames=first, backend=get_backend("opencv", None))
+        roi = auto_region(first, opts)
+        t_roi = time.perf_counter()
+        run = measure_sequence(reader, rig.cameras, opts, roi=roi, backend=get_backend("opencv", None))
     wall = time.perf_counter() - t_start
     if run.problems or run.skipped:
         raise RuntimeError(f"{folder}: images left out: {run.problems}, frames skipped: {run.skipped}")
@@ -129,8 +142,9 @@ def _run_stage(folder: Path, rig, n: int) -> dict:
             "other_s": f.total_s - f.wait_s - f.tracking_s - f.triangulation_s - f.detection_s, "seen": f.seen,
             "detected": f.detected} for f in run.frames]
     res = run.result
-    setup = (t_roi_read - t_start) + run.setup_s
-    return {"wall_s": wall, "setup_s": setup, "roi_read_s": t_roi_read - t_start, "roi_compute_s": run.setup_s,
+    setup = (t_roi - t_start) + run.setup_s
+    return {"wall_s": wall, "setup_s": setup, "roi_read_s": t_roi_read - t_start, "roi_compute_s": t_roi - t_roi_read,
+            "tracker_setup_s": run.setup_s,
             "roi_frames": len(first), "frames": per, "roi": res.roi, "uv": res.uv, "tracks": int(res.point_ids.size),
             "points_mean": float(res.seen.sum(axis=1).mean()), "points_min": int(res.seen.sum(axis=1).min()),
             "redetections": int(sum(1 for f in per[1:] if f["detected"])),
@@ -170,21 +184,21 @@ def _decode_baselines(folder: Path, rig, n: int, repeats: int, warmup: int) -> d
     def imread_1():
         for trip in paths:
             for p in trip:
-                cv2.imread(p, cv2.IMREAD_GRAYSCALE)
+                cv2.imread(p, cv2.IMREAD_COLOR)
 
     pool = ThreadPoolExecutor(2)
 
     def imread_2():
         for trip in paths:
-            list(pool.map(lambda p: cv2.imread(p, cv2.IMREAD_GRAYSCALE), trip))
+            list(pool.map(lambda p: cv2.imread(p, cv2.IMREAD_COLOR), trip))
 
     def read_image_1():
         for trip in paths:
             for p, size in zip(trip, sizes):
-                read_image(p, "gray", size)
+                read_image(p, "color", size)
 
     def reader_alone():
-        with FrameReader(src, sizes=sizes, frames=range(n), workers=CLI_WORKERS) as reader:
+        with FrameReader(src, mode="color", sizes=sizes, frames=range(n), workers=CLI_WORKERS) as reader:
             for _ in reader:
                 pass
 
@@ -206,6 +220,15 @@ def _load_gray(folder: Path, rig, n: int):
     src = open_frame_source(folder, cameras=rig.names)
     return [[cv2.imread(str(src.files[c][k]), cv2.IMREAD_GRAYSCALE) for c in range(src.n_cameras)]
             for k in range(n)]
+
+
+def _highpass(gray, sigma):
+    """Measurer._prefilter: the high-pass ``128 + 2 (g - blur(g))`` (the gray image itself for sigma 0/None)."""
+    import cv2
+
+    if not sigma:
+        return gray
+    return cv2.addWeighted(gray, 2.0, cv2.GaussianBlur(gray, (0, 0), sigma), -2.0, 128.0)
 
 
 def _tracking_baselines(gray, uv, opts, repeats: int, warmup: int) -> dict:
@@ -245,7 +268,9 @@ def _tracking_baselines(gray, uv, opts, repeats: int, warmup: int) -> dict:
 def _detect_match(cameras, images, roi, opts, backend, repeats: int, warmup: int) -> dict:
     """Measurer._spawn's first call on frame 0: corners in the ROI minus highlights, then match_points."""
     from heartcv.features import detect_corners, saturation_mask
+    from heartcv.klt import LKParams, expected_ncc, template_patches
     from heartcv.matching import match_points
+    from heartcv.tissue import noise_sigma
 
     o = opts
     ref = o.ref_camera
@@ -258,9 +283,15 @@ def _detect_match(cameras, images, roi, opts, backend, repeats: int, warmup: int
                                         block_size=o.corner_block_size, quality=o.corner_quality,
                                         exclude=np.zeros((0, 2)), backend=backend)
 
+    noise_var = max(noise_sigma(_highpass(im, o.highpass_sigma)) ** 2 for im in images)
+
     def match():
         imgs = [np.asarray(im, np.float32) for im in images]
-        state["m"] = match_points(cameras, imgs, ref, state["uv"], radius=o.match_radius, min_ncc=o.match_min_ncc,
+        min_ncc = o.match_min_ncc
+        if min_ncc is None:       # Measurer._spawn's adaptive gate (what noise alone leaves, minus the allowance)
+            patch = template_patches(gray, state["uv"], LKParams(ncc_radius=o.match_radius))
+            min_ncc = np.maximum(o.ncc_floor, expected_ncc(patch, noise_var) - o.match_ncc_allowance)
+        state["m"] = match_points(cameras, imgs, ref, state["uv"], radius=o.match_radius, min_ncc=min_ncc,
                                   backend=backend)
 
     td = measure(detect, repeats=repeats, warmup=warmup, number=1)
@@ -298,10 +329,11 @@ def bench_measure(*, quick: bool = False) -> dict:
               f"OpenCV threads: {cv2.getNumThreads()}; FrameReader workers: {CLI_WORKERS}")
 
         # -- the stage ---------------------------------------------------------------------------------------------
-        runs = [_run_stage(folder, rig, n) for _ in range(runs_n)]
+        opts, opts_note = _options(rig)
+        print(f"options: MeasureOptions().for_image({W}, {H}) ({opts_note})")
+        runs = [_run_stage(folder, rig, n, opts) for _ in range(runs_n)]
         order = sorted(range(runs_n), key=lambda i: runs[i]["wall_s"])
         run = runs[order[runs_n // 2]]
-        opts = run["options"]
         all_, steady = _split(run, n)
         rate_all = 1.0 / all_["total_s"]
         rate_steady = 1.0 / steady["total_s"]
@@ -325,7 +357,8 @@ def bench_measure(*, quick: bool = False) -> dict:
         f0 = run["frames"][0]
         print(f"frame 0: {fmt_time(f0['total_s'])} (decode wait {fmt_time(f0['decode_s'])}, detection + matching "
               f"{fmt_time(f0['detection_s'])}); setup {fmt_time(run['setup_s'])} (ROI frames read "
-              f"{fmt_time(run['roi_read_s'])}, region_of_interest {fmt_time(run['roi_compute_s'])})")
+              f"{fmt_time(run['roi_read_s'])}, auto_region {fmt_time(run['roi_compute_s'])}, tracker "
+              f"{fmt_time(run['tracker_setup_s'])})")
         print(f"tracks {run['tracks']}, points per frame {run['points_mean']:.0f} (min {run['points_min']}), "
               f"re-detections after frame 0: {run['redetections']}, sigma {run['sigma_px']:.3f} px")
         if runs_n > 1:
@@ -411,7 +444,14 @@ def bench_measure(*, quick: bool = False) -> dict:
     print(f"throughput: {rate_all:.2f} triplets/s over all {n} frames, {rate_steady:.2f} triplets/s steady state; "
           f"target >= {TARGET_TRIPLETS_PER_S:g}: all frames {verdict_all}, steady state {verdict_steady}")
     load1 = os.getloadavg()
-    print(f"load average at end: {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
+    print(f"load average at the end of the phantom part: {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
+
+    # -- real endoscope stereo (issue 14) ---------------------------------------------------------------------------
+    print()
+    print("--- in-vivo stereo endoscope (Hamlyn heart, 360x288): sparse default, dense mode, backends (issue 14) ---")
+    with single_threaded_blas():
+        print(f"BLAS threads in effect: {blas_threads()} (threadpoolctl.threadpool_limits(1))")
+        real = bench_real(quick=quick)
 
     def clean(r):
         return {k: v for k, v in r.items() if k != "uv"}
@@ -421,8 +461,9 @@ def bench_measure(*, quick: bool = False) -> dict:
             "blas_threads": "1", "opencv_threads": cv2.getNumThreads(), "reader_workers": CLI_WORKERS,
             "runs": [{"wall_s": r["wall_s"], "setup_s": r["setup_s"],
                       "steady_s": sum(f["total_s"] for f in r["frames"][1:])} for r in runs],
-            "frames": run["frames"], "setup": {"total_s": run["setup_s"], "roi_read_s": run["roi_read_s"],
-                                               "roi_compute_s": run["roi_compute_s"]},
+            "frames": run["frames"],
+            "setup": {"total_s": run["setup_s"], "roi_read_s": run["roi_read_s"], "roi_compute_s": run["roi_compute_s"],
+                      "tracker_s": run["tracker_setup_s"]},
             "per_triplet_all_s": all_, "per_triplet_steady_s": steady, "triplets_per_s_all": rate_all,
             "triplets_per_s_steady": rate_steady, "tracks": run["tracks"], "points_mean": run["points_mean"],
             "points_min": run["points_min"], "redetections": run["redetections"],
@@ -435,4 +476,5 @@ def bench_measure(*, quick: bool = False) -> dict:
                        **({"kornia_over_opencv_detect_match": dm["kornia"]["total_s"] / base} if "kornia" in dm
                           else {})},
             "target_triplets_per_s": TARGET_TRIPLETS_PER_S, "verdict_all": verdict_all,
-            "verdict_steady": verdict_steady, "load_average_start": list(load0), "load_average_end": list(load1)}
+            "verdict_steady": verdict_steady, "options_note": opts_note, "load_average_start": list(load0),
+            "load_average_end": list(load1), "real": real}

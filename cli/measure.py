@@ -12,6 +12,7 @@ from pathlib import Path
 import time
 
 import click
+import numpy as np
 
 from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, progress
 
@@ -37,13 +38,44 @@ MAX_WORKERS = 1024
 @click.option("--ref-camera", default=None, help="Camera where points are detected (default: the rig's first).")
 @click.option("--points", "max_points", type=Int(1), default=300, show_default=True,
               help="Points to keep tracked (new ones are detected when fewer than 80 % are seen).")
-@click.option("--min-distance", type=Float(1, 16384), default=15.0, show_default=True, metavar="PX",
-              help="Least distance between detected corners (small images: e.g. 5).")
-@click.option("--corner-block", type=Int(2, 255), default=7, show_default=True, metavar="PX",
-              help="Shi-Tomasi structure-tensor block size (small images: e.g. 3).")
-@click.option("--corner-quality", type=Float(0, 1, lo_open=True), default=0.02, show_default=True,
+@click.option("--min-distance", type=Float(1, 16384), default=None, metavar="PX",
+              help="Least distance between detected corners (default: 15 px at 1080 rows, scaled with the image's "
+                   "smaller side, at least 5).")
+@click.option("--corner-block", type=Int(2, 255), default=None, metavar="PX",
+              help="Shi-Tomasi structure-tensor block size (default: 7 px at 1080 rows, scaled, at least 3).")
+@click.option("--corner-quality", type=Float(0, 1, lo_open=True), default=0.01, show_default=True,
               help="Keep corners whose response is at least this fraction of the strongest.")
-@click.option("--frames", type=Int(2), default=None, help="Use only the first N frames.")
+@click.option("--frames", type=Int(1), default=None, help="Use only the first N frames (one instant is enough).")
+@click.option("--dense", is_flag=True, default=False,
+              help="Dense surface mode: semi-global stereo plus dense optical flow, thousands of points per frame "
+                   "(two cameras: the reference and the widest baseline; heartcv.dense).")
+@click.option("--fb-max", type=Float(0, 1000, lo_open=True), default=1.0, show_default=True, metavar="PX",
+              help="Tracking gate: largest forward-backward error of a tracked view.")
+@click.option("--ncc-allowance", type=Float(0, 2), default=0.25, show_default=True,
+              help="Photometric gate of the tracking: accept an NCC down to the one image noise alone would leave "
+                   "for that patch minus this (and at least 0.5).")
+@click.option("--match-ncc-allowance", type=Float(0, 2), default=0.15, show_default=True,
+              help="The same for matching new points across the cameras.")
+@click.option("--min-ncc", type=Float(-1, 1), default=None,
+              help="A fixed NCC gate (tracking and matching) instead of the noise-adaptive ones.")
+@click.option("--max-depth-std", type=Float(0, 10, lo_open=True), default=0.05, show_default=True,
+              help="Geometry gate: largest predicted depth standard deviation (rig geometry and pixel noise), as a "
+                   "fraction of the depth.")
+@click.option("--max-reprojection", type=Float(0, 1000, lo_open=True), default=1.0, show_default=True, metavar="PX",
+              help="Triangulation gate: largest reprojection RMS (and per-view outlier threshold).")
+@click.option("--min-angle", type=Float(0, 90), default=0.0, show_default=True, metavar="DEG",
+              help="Optional least angle between the viewing rays (0: only the depth-uncertainty gate).")
+@click.option("--max-gap", type=Int(1), default=60, show_default=True, metavar="FRAMES",
+              help="A track unseen for more frames in a row ends (until then it is searched for and resumes).")
+@click.option("--window", type=Int(5, 255), default=None, metavar="PX",
+              help="Lucas-Kanade window (odd; default 21 px at 1080 rows, scaled with the image, at least 11).")
+@click.option("--no-specular", "no_specular", is_flag=True, default=False,
+              help="Do not mask specular highlights per frame.")
+@click.option("--overlay", "overlay_dir", type=click.Path(file_okay=False), default=None,
+              help="Write DIR/frames/*.png (the tracks drawn on the images) and DIR/tracks.png (points per frame, "
+                   "track lengths).")
+@click.option("--overlay-video", is_flag=True, default=False,
+              help="With --overlay: one DIR/overlay.mp4 instead of the PNG frames.")
 @click.option("--backend", type=click.Choice(("opencv", "kornia")), default="opencv", show_default=True,
               help="Detection, description and matching on OpenCV/numpy or on torch tensors with kornia.")
 @click.option("--device", default=None, help="Torch device for --backend kornia (default: cuda if available).")
@@ -59,15 +91,16 @@ MAX_WORKERS = 1024
 @json_opt
 @click.pass_context
 def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_camera, max_points, min_distance,
-            corner_block, corner_quality, frames, backend, device, pixel_sigma, highpass, truth_file, csv_file,
-            workers, as_json):
+            corner_block, corner_quality, frames, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
+            max_depth_std, max_reprojection, min_angle, max_gap, window, no_specular, overlay_dir, overlay_video,
+            backend, device, pixel_sigma, highpass, truth_file, csv_file, workers, as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
     name is the same instant) seen by the cameras of RIG, and write their positions and covariances per frame.
 
     Isolated bad images (missing, corrupt, wrong size) are named in a warning and that camera is left out of
     that frame. Exit 2 for bad input (cameras missing, different frame counts, a rig that does not fit the
-    images) and for outputs that would replace an input or a file heartcv did not write; exit 1 when no point
-    can be tracked.
+    images, a rig not in metres) and for outputs that would replace an input or a file heartcv did not write;
+    exit 1 when no point can be tracked (the message names the gates that removed the candidates).
     """
     from heartcv.io import FrameReader, open_frame_source, read_rig
     from heartcv.tracker.files import InputError
@@ -77,10 +110,17 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     inputs_path = Path(inputs_file) if inputs_file else seq / "inputs.csv"
     _guard(output, csv_file, {"SEQUENCE": seq, "--rig": rig_file, "--mask": mask_file, "--inputs": inputs_path,
                               "SEQUENCE/timestamps.csv": seq / "timestamps.csv", "--truth": truth_file})
+    if overlay_dir is not None:
+        from .measure_overlay import check_overlay_dir
+
+        check_overlay_dir(overlay_dir)
+    elif overlay_video:
+        raise BadInput("--overlay-video: only with --overlay DIR")
     rig = read_rig(rig_file)
     if len(rig) < 2:
         raise InputError(rig_file, f"{len(rig)} camera ({rig.names[0]}); measure triangulates from at least 2",
                          "cameras")
+    _check_rig_scale(rig, rig_file)
     source = open_frame_source(sequence, cameras=rig.names, cameras_source=rig_file)
     names = rig.names
     ref = 0 if ref_camera is None else (names.index(ref_camera) if ref_camera in names else None)
@@ -90,8 +130,8 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
         log.info("%d camera images missing in %s (each is named when its frame is read)", len(source.missing()),
                  sequence)
     count = source.n_frames if frames is None else min(frames, source.n_frames)
-    if count < 2:
-        raise BadInput(f"{sequence}: {count} frame(s); at least 2 expected")
+    if count < 1:
+        raise BadInput(f"{sequence}: no frame")
     _check_sizes(source, rig, count, rig_file)
     times = _frame_times(source, fps, count)
     stamps = seq / "timestamps.csv" if fps is None and (seq / "timestamps.csv").is_file() else None
@@ -99,11 +139,20 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     roi = _mask(mask_file, rig.cameras[ref].size)
     truth = _truth(truth_file, count, names)
     be = _backend(backend, device)
-    opts = _options(ref, max_points, pixel_sigma, min_distance, corner_block, corner_quality, highpass)
+    if dense:
+        opts = _dense_options(ref, pixel_sigma)
+    else:
+        opts = _options(ref, max_points, pixel_sigma, min_distance, corner_block, corner_quality, highpass,
+                        fb_max=fb_max, ncc_allowance=ncc_allowance, match_ncc_allowance=match_ncc_allowance,
+                        min_ncc=min_ncc, max_depth_std=max_depth_std,
+                        max_reprojection=max_reprojection, min_angle=min_angle, max_gap=max_gap, window=window,
+                        specular=not no_specular)
 
     t_start = time.perf_counter()
-    with FrameReader(source, sizes=[c.size for c in rig.cameras], frames=range(count), workers=workers) as reader:
-        run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file)
+    mode = "gray" if dense else "color"
+    with FrameReader(source, mode=mode, sizes=[c.size for c in rig.cameras], frames=range(count),
+                     workers=workers) as reader:
+        run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file, dense)
     wall = time.perf_counter() - t_start
     res = run.result
     mset = _measurement_set(res, times, (in_names, in_units, in_values), be.name, source, count, ref, highpass,
@@ -111,7 +160,10 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
     if csv_file:
         _write_csv(csv_file, mset, res.uv, names)
     write_measurements(output, mset)
-    _report(output, run, times, wall, names, be.name, truth, ref, as_json)
+    overlay = None
+    if overlay_dir is not None:
+        overlay = _overlay(ctx, overlay_dir, source, rig, run.result, count, ref, times, overlay_video, workers)
+    _report(output, run, times, wall, names, "dense" if dense else be.name, truth, ref, as_json, overlay)
 
 
 # -- outputs are guarded before anything is read -------------------------------------------------------------------
@@ -142,6 +194,14 @@ def _check_sizes(source, rig, count, rig_file):
 
     with FrameReader(source, frames=range(count), workers=1) as reader:
         check_image_sizes(rig.cameras, reader.read, count, locate, f"the rig {rig_file}")
+
+
+def _check_rig_scale(rig, rig_file):
+    """Exit 2 for a rig whose cameras are farther apart than :data:`heartcv.measure_data.MAX_BASELINE_M` (a rig
+    written in millimetres)."""
+    from heartcv.measure_data import check_rig_scale
+
+    check_rig_scale(rig.cameras, rig_file)
 
 
 def _frame_times(source, fps, count):
@@ -211,35 +271,91 @@ def _backend(name, device):
     return be
 
 
-def _options(ref, max_points, pixel_sigma, min_distance, corner_block, corner_quality, highpass):
-    from heartcv.klt import LKParams
+def _options(ref, max_points, pixel_sigma, min_distance, corner_block, corner_quality, highpass, *, fb_max=1.0,
+             ncc_allowance=0.25, match_ncc_allowance=0.15, min_ncc=None, max_depth_std=0.05, max_reprojection=1.0,
+             min_angle=0.0, max_gap=60, window=None, specular=True):
     from heartcv.measure import MeasureOptions
 
-    return MeasureOptions(ref_camera=ref, max_points=max_points, pixel_sigma=pixel_sigma,
+    if window is not None and window % 2 == 0:
+        raise BadInput(f"--window: an odd number expected, got {window}")
+    base = MeasureOptions(ref_camera=ref, max_points=max_points, pixel_sigma=pixel_sigma,
                           min_distance_px=min_distance, corner_block_size=corner_block,
-                          corner_quality=corner_quality, highpass_sigma=highpass or None, lk=LKParams())
+                          corner_quality=corner_quality, highpass_sigma=highpass or None,
+                          match_min_ncc=min_ncc, match_ncc_allowance=match_ncc_allowance,
+                          track_ncc_allowance=ncc_allowance,
+                          max_reprojection_px=max_reprojection, outlier_px=max_reprojection, min_angle_deg=min_angle,
+                          max_depth_std_ratio=max_depth_std, max_gap_frames=max_gap, specular=specular)
+    return _Pending(base, window=window, fb_max=fb_max, min_ncc=min_ncc, ncc_allowance=ncc_allowance)
+
+
+class _Pending:
+    """Sparse options whose image-size-dependent parts (the LK window) are set once the rig's image size is known
+    (:meth:`resolve`)."""
+
+    def __init__(self, base, **lk):
+        self.base, self.lk = base, lk
+        self.ref_camera = base.ref_camera
+
+    def resolve(self, width, height):
+        from dataclasses import replace
+
+        from heartcv.klt import LKParams
+
+        o = self.base.for_image(width, height)
+        lk = o.lk
+        window = self.lk["window"] or lk.window
+        adaptive = self.lk["min_ncc"] is None
+        lk = LKParams(window=window, ncc_radius=lk.ncc_radius, fb_max_px=self.lk["fb_max"],
+                      min_ncc=lk.min_ncc if adaptive else self.lk["min_ncc"],
+                      ncc_allowance=self.lk["ncc_allowance"] if adaptive else None)
+        return replace(o, lk=lk)
+
+
+def _dense_options(ref, pixel_sigma):
+    from heartcv.dense import DenseOptions
+
+    return DenseOptions(ref_camera=ref, pixel_sigma=pixel_sigma)
 
 
 # -- the stage -----------------------------------------------------------------------------------------------------
-def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file):
-    """:func:`heartcv.measure.measure_sequence` over the reader, with a progress bar; its problems as warnings."""
-    from heartcv.measure import MeasureFailed, measure_sequence, reference_frames
+def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=False):
+    """:func:`heartcv.measure.measure_sequence` (or :func:`heartcv.dense.dense_sequence`) over the reader, with a
+    progress bar; its problems as warnings."""
+    from heartcv.measure import MeasureFailed, auto_region, measure_sequence, reference_frames
     from heartcv.tracker.files import InputError
 
-    first = reference_frames(reader.read, count, opts.ref_camera) if roi is None else ()
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     try:
-        with progress(reader, "measuring", count, verbosity) as frames:
-            run = measure_sequence(frames, rig.cameras, opts, roi=roi, roi_frames=first, backend=backend)
+        if dense:
+            from heartcv.dense import StereoPair, dense_sequence
+
+            try:
+                StereoPair.from_cameras(rig.cameras, opts.ref_camera)
+            except ValueError as exc:
+                raise InputError(rig_file, f"--dense: {exc}", "cameras") from None
+            with progress(reader, "measuring (dense)", count, verbosity) as frames:
+                run = dense_sequence(frames, rig.cameras, opts, roi=roi)
+        else:
+            ref_cam = rig.cameras[opts.ref_camera]
+            opts = opts.resolve(ref_cam.width, ref_cam.height)
+            if roi is None:
+                roi = auto_region(reference_frames(reader.read, count, opts.ref_camera), opts)
+                log.info("automatic region of interest: %d px (%.0f %% of camera %s); --mask to choose it",
+                         roi.sum(), 100 * roi.mean(), ref_cam.name)
+            with progress(reader, "measuring", count, verbosity) as frames:
+                run = measure_sequence(frames, rig.cameras, opts, roi=roi, backend=backend)
     except InputError as exc:
-        raise exc.in_file(sequence) from None
+        raise (exc if exc.path is not None else exc.in_file(sequence)) from None
     except MeasureFailed as exc:
-        raise StageFailed(f"{sequence}: {exc}; check the rig ({rig_file}), the mask or the images") from None
+        raise StageFailed(f"{sequence}: {exc}") from None
     for k, msg in run.problems:
         log.warning("frame %d: %s; left out", k, msg)
     if run.skipped:
         log.warning("%d of %d frames had fewer than two readable images: all points missing there",
                     len(run.skipped), count)
+    rejected = run.result.rejected
+    if rejected:
+        log.info("candidates removed per gate: %s", ", ".join(f"{g} {n}" for g, n in rejected.items()))
     return run
 
 
@@ -270,16 +386,33 @@ def _write_csv(path, mset, uv, names):
         tmp.write_text("\n".join(measurement_csv_lines(mset, uv, names)) + "\n", encoding="utf-8")
 
 
-def _report(output, run, times, wall, names, backend, truth, ref, as_json):
+def _overlay(ctx, folder, source, rig, result, count, ref, times, video, workers):
+    from heartcv.io import FrameReader
+
+    from .measure_overlay import write_overlay
+
+    fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 25.0
+    verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
+    with FrameReader(source, mode="color", sizes=[c.size for c in rig.cameras], frames=range(count),
+                     workers=workers) as reader, progress(reader, "overlay", count, verbosity) as frames:
+        summary = write_overlay(folder, frames, result, list(source.camera_names), list(source.frame_names[:count]),
+                                ref=ref, fps=fps, video=video)
+    log.info("wrote the overlay %s", folder)
+    return summary
+
+
+def _report(output, run, times, wall, names, backend, truth, ref, as_json, overlay=None):
     from heartcv.measure_data import measurement_summary, truth_statistics
 
     summary = {"output": str(output), "cameras": names, "backend": backend,
                **measurement_summary(run.result, times, wall, run.wait_s)}
+    if overlay is not None:
+        summary["overlay"] = str(overlay.get("folder"))
     if truth is not None:
         summary.update(truth_statistics(run.result, truth, ref))
     if as_json:
         emit_json(summary)
     else:
-        log.info("wrote %s: %d frames, %d tracks, %.0f points per frame (min %d), reprojection RMS %.3f px",
-                 output, summary["frames"], summary["tracks"], summary["points_mean"], summary["points_min"],
-                 summary["reprojection_rms_px"])
+        log.info("wrote %s: %d frames, %d tracks, %.0f points per frame (min %d), median track %g frames, "
+                 "reprojection RMS %.3f px", output, summary["frames"], summary["tracks"], summary["points_mean"],
+                 summary["points_min"], summary["track_length_median_frames"], summary["reprojection_rms_px"] or 0)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["region_of_interest", "detect_corners", "sample_patches", "ncc", "saturation_mask",
+__all__ = ["region_of_interest", "moving_mask", "detect_corners", "sample_patches", "ncc", "saturation_mask",
            "texture_strength"]
 
 
@@ -81,14 +81,7 @@ def region_of_interest(frames, *, margin=12, texture_factor=3.0, motion_px=0.5, 
     region = textured
     moving_used = False
     if len(frames) >= 2:
-        stack = np.stack([cv2.GaussianBlur(f, (0, 0), 2.0).astype(np.float32) for f in frames])
-        change = stack.max(axis=0) - stack.min(axis=0)
-        gx = cv2.Sobel(stack[0], cv2.CV_32F, 1, 0, ksize=3) / 8
-        gy = cv2.Sobel(stack[0], cv2.CV_32F, 0, 1, ksize=3) / 8
-        grad = cv2.GaussianBlur(np.sqrt(gx * gx + gy * gy), (0, 0), 6.0)
-        moving = change > motion_px * grad + 4.0 * max(noise, 0.5)
-        moving = cv2.morphologyEx(moving.astype(np.uint8), cv2.MORPH_CLOSE,
-                                  cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (31, 31))).astype(bool)
+        moving = moving_mask(frames, noise, motion_px=motion_px)
         if (textured & moving).sum() >= max(min_area, 0.05 * textured.sum()):
             region = textured & moving
             moving_used = True
@@ -110,6 +103,22 @@ def region_of_interest(frames, *, margin=12, texture_factor=3.0, motion_px=0.5, 
         raise RegionNotFound(f"region of interest: only {int(mask.sum())} px of textured surface found "
                              f"(at least {min_area} expected)")
     return mask, {"moving": moving_used, "area_px": int(mask.sum())}
+
+
+def moving_mask(frames, noise, *, motion_px=0.5, close_px=31) -> np.ndarray:
+    """Pixels (H, W) bool whose brightness changes over ``frames`` (gray, 2 or more) by more than the noise
+    (``noise``, grey levels) and a motion of ``motion_px`` pixels at the local gradient would explain, closed over
+    ``close_px`` (the moving surface as one piece)."""
+    import cv2
+
+    stack = np.stack([cv2.GaussianBlur(f, (0, 0), 2.0).astype(np.float32) for f in frames])
+    change = stack.max(axis=0) - stack.min(axis=0)
+    gx = cv2.Sobel(stack[0], cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(stack[0], cv2.CV_32F, 0, 1, ksize=3) / 8
+    grad = cv2.GaussianBlur(np.sqrt(gx * gx + gy * gy), (0, 0), 6.0)
+    moving = change > motion_px * grad + 4.0 * max(noise, 0.5)
+    return cv2.morphologyEx(moving.astype(np.uint8), cv2.MORPH_CLOSE,
+                            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close_px, close_px))).astype(bool)
 
 
 def detect_corners(gray, mask=None, *, max_points=400, min_distance=15, block_size=7, quality=0.02,

@@ -19,7 +19,11 @@ import numpy as np
 from .features import ncc, sample_patches
 from .matching import patch_offsets
 
-__all__ = ["LKParams", "template_patches", "track_from_template"]
+__all__ = ["LKParams", "template_patches", "track_from_template", "TileSet", "cut_tiles", "track_tiles", "flow_step",
+           "expected_ncc", "LOST", "FORWARD_BACKWARD", "PHOTOMETRIC"]
+
+# why a view was not accepted (the ``reason`` codes of :func:`track_tiles`)
+ACCEPTED, LOST, FORWARD_BACKWARD, PHOTOMETRIC = 0, 1, 2, 3
 
 
 @dataclass(frozen=True)
@@ -33,12 +37,25 @@ class LKParams:
     fb_max_px: float = 0.3
     min_ncc: float = 0.85
     ncc_radius: int = 7
+    ncc_allowance: float | None = None
+    refine_levels: int = 1
+    search_px: int = 8
 
     def __post_init__(self):
         if self.window < 5 or self.window % 2 == 0:
             raise ValueError(f"window: an odd number >= 5 expected, got {self.window}")
         if not 0 <= self.levels <= 6:
             raise ValueError(f"levels: 0..6 expected, got {self.levels}")
+        if not 0 <= self.refine_levels <= 3:
+            raise ValueError(f"refine_levels: 0..3 expected, got {self.refine_levels}")
+        if self.ncc_allowance is not None and not 0 <= self.ncc_allowance <= 2:
+            raise ValueError(f"ncc_allowance: 0..2 expected, got {self.ncc_allowance}")
+
+    @property
+    def tile_half(self) -> int:
+        """Half side of the tiles of :func:`track_tiles`: the LK window's reach at the coarsest refinement level
+        plus ``search_px`` of motion away from the starting guess."""
+        return (self.window // 2 + 2) * 2 ** self.refine_levels + self.search_px
 
 
 def template_patches(gray, uv, params: LKParams) -> np.ndarray:
@@ -110,3 +127,139 @@ def _crop_box(uv, shape, params: LKParams, motion_px=48):
     lo = np.floor(uv[finite].min(axis=0) - pad).astype(int)
     hi = np.ceil(uv[finite].max(axis=0) + pad).astype(int)
     return max(lo[0], 0), max(lo[1], 0), min(hi[0], W), min(hi[1], H)
+
+
+# =====================================================================================================================
+# Template tracking of many points with per-point templates: tiles packed into one mosaic per image
+# =====================================================================================================================
+@dataclass
+class TileSet:
+    """Per-point template tiles: ``tiles`` (N, S, S) uint8 crops of the template images, ``origin`` (N, 2) int
+    the image position of each tile's top-left pixel, ``uv`` (N, 2) the point in the template image, ``patch``
+    (N, G) its NCC template (:func:`template_patches`) and ``expected`` (N,) the NCC that image noise alone
+    leaves between the template and a perfect match (:func:`expected_ncc`)."""
+
+    tiles: np.ndarray
+    origin: np.ndarray
+    uv: np.ndarray
+    patch: np.ndarray
+    expected: np.ndarray
+
+
+def expected_ncc(patch, noise_var) -> np.ndarray:
+    """NCC (N,) of a template patch (N, G) with a perfect match, when both carry independent pixel noise of
+    variance ``noise_var`` (grey levels^2): ``s / (s + noise_var)`` with ``s = var(patch) - noise_var`` the
+    variance of the patch's signal (at least 0)."""
+    v = np.nanvar(np.asarray(patch, np.float64), axis=-1)
+    s = np.maximum(v - noise_var, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(v > 0, s / (s + noise_var), 0.0)
+
+
+def cut_tiles(gray, uv, half) -> tuple[np.ndarray, np.ndarray]:
+    """Square crops (N, 2 half + 1, 2 half + 1) of ``gray`` centred on the pixels nearest ``uv`` (N, 2) (the
+    border replicated outside the image) and their top-left positions (N, 2) int."""
+    import cv2
+
+    gray = np.ascontiguousarray(gray)
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    S = 2 * half + 1
+    origin = np.rint(np.nan_to_num(uv, nan=0.0)).astype(np.int64) - half
+    H, W = gray.shape[:2]
+    padded = cv2.copyMakeBorder(gray, S, S, S, S, cv2.BORDER_REPLICATE)
+    o = np.clip(origin + S, 0, [W + S, H + S])           # far outside: the replicated border's edge
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (S, S))
+    return windows[o[:, 1], o[:, 0]], origin
+
+
+def _mosaic(tiles) -> tuple[np.ndarray, np.ndarray]:
+    """Tiles (N, S, S) packed into one image (rows of ``ceil(sqrt(N))`` tiles) and each tile's top-left position
+    (N, 2) in it (x, y)."""
+    N, S = tiles.shape[0], tiles.shape[1]
+    cols = int(np.ceil(np.sqrt(N)))
+    rows = int(np.ceil(N / cols))
+    pad = rows * cols - N
+    t = np.concatenate([tiles, np.zeros((pad, S, S), tiles.dtype)]) if pad else tiles
+    img = t.reshape(rows, cols, S, S).transpose(0, 2, 1, 3).reshape(rows * S, cols * S)
+    k = np.arange(N)
+    return np.ascontiguousarray(img), np.stack([(k % cols) * S, (k // cols) * S], axis=1).astype(np.float64)
+
+
+def track_tiles(templates: TileSet, cur_gray, uv_init, params: LKParams, *, ncc_floor: float = 0.5):
+    """Track points from their own template tiles into the current image, all in one Lucas–Kanade call.
+
+    Each point's template tile and a tile of the current image around its starting guess are packed into two
+    mosaics (:func:`_mosaic`); pyramidal LK (``params.refine_levels`` levels) aligns each template to its current
+    tile, and LK back from the result to the template gives the forward–backward error (Kalal et al., ICPR
+    2010). A point is accepted when LK converged inside its tile (``LOST`` otherwise), the forward–backward error
+    is at most ``params.fb_max_px`` (``FORWARD_BACKWARD``), and the NCC of its template patch with the patch at
+    the result is at least ``max(ncc_floor, expected - ncc_allowance)`` with ``expected`` the NCC that image
+    noise alone leaves (:func:`expected_ncc`; ``PHOTOMETRIC``); without ``ncc_allowance`` the fixed
+    ``params.min_ncc``.
+
+    Returns
+    -------
+    uv : ndarray (N, 2)       tracked positions (NaN where not accepted)
+    reason : ndarray (N,) int ``ACCEPTED`` (0), ``LOST``, ``FORWARD_BACKWARD`` or ``PHOTOMETRIC``
+    fb_px : ndarray (N,)      forward-backward error
+    score : ndarray (N,)      NCC of template and tracked patch
+    """
+    import cv2
+
+    N = len(templates.uv)
+    if N == 0:
+        return np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    half = params.tile_half
+    S = 2 * half + 1
+    if templates.tiles.shape[1] != S:
+        raise ValueError(f"templates: tiles of side {S} expected, got {templates.tiles.shape[1]}")
+    init = np.where(np.isfinite(uv_init), uv_init, templates.uv)
+    cur_tiles, cur_origin = cut_tiles(cur_gray, init, half)
+    A, pos = _mosaic(templates.tiles)
+    B, _ = _mosaic(cur_tiles)
+    p0 = (pos + templates.uv - templates.origin).astype(np.float32).reshape(-1, 1, 2)
+    p1 = (pos + init - cur_origin).astype(np.float32).reshape(-1, 1, 2)
+    win = (params.window, params.window)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon_px)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(A, B, p0, p1.copy(), winSize=win, maxLevel=params.refine_levels,
+                                         criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(B, A, p1, p0.copy(), winSize=win, maxLevel=params.refine_levels,
+                                            criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    local = p1.reshape(-1, 2).astype(float) - pos
+    uv = local + cur_origin
+    fb = np.linalg.norm(back.reshape(-1, 2).astype(float) - p0.reshape(-1, 2), axis=1)
+    margin = params.window / 2
+    inside = np.isfinite(local).all(axis=1) & (local >= margin).all(axis=1) & (local <= S - 1 - margin).all(axis=1)
+    cur = sample_patches(np.asarray(cur_gray, np.float32), uv, patch_offsets(params.ncc_radius))
+    score = np.nan_to_num(ncc(templates.patch, cur).astype(float), nan=-1.0)
+    if params.ncc_allowance is None:
+        gate = np.full(N, params.min_ncc)
+    else:
+        gate = np.maximum(ncc_floor, templates.expected - params.ncc_allowance)
+    reason = np.full(N, ACCEPTED, np.int64)
+    reason[score < gate] = PHOTOMETRIC
+    reason[~(fb <= params.fb_max_px)] = FORWARD_BACKWARD
+    reason[(st.ravel() != 1) | (st2.ravel() != 1) | ~inside | ~np.isfinite(score)] = LOST
+    uv[reason != ACCEPTED] = np.nan
+    return uv, reason, fb, score
+
+
+def flow_step(prev_gray, cur_gray, uv_prev, params: LKParams) -> np.ndarray:
+    """Frame-to-frame pyramidal LK of points ``uv_prev`` (N, 2) from the previous image to the current one (the
+    starting guesses of :func:`track_tiles`); NaN where LK lost a point."""
+    import cv2
+
+    n = len(uv_prev)
+    if n == 0:
+        return np.zeros((0, 2))
+    x0, y0, x1, y1 = _crop_box(uv_prev, prev_gray.shape, params)
+    off = np.array([x0, y0], np.float32)
+    a = np.ascontiguousarray(prev_gray[y0:y1, x0:x1])
+    b = np.ascontiguousarray(cur_gray[y0:y1, x0:x1])
+    p0 = (np.asarray(uv_prev, np.float32) - off).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon_px)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, None, winSize=(params.window, params.window),
+                                         maxLevel=params.levels, criteria=crit)
+    uv = p1.reshape(-1, 2).astype(float) + off
+    uv[st.ravel() != 1] = np.nan
+    return uv

@@ -272,8 +272,8 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     fine_step_px, fine_span_px :
         The fine sweep at full resolution: steps of ``fine_step_px`` pixels over +- ``fine_span_px`` around the
         coarse optimum (default: two coarse steps).
-    min_ncc : float
-        A camera's match is kept if its NCC reaches this.
+    min_ncc : float or ndarray (N,)
+        A camera's match is kept if its NCC reaches this (one value, or one per point).
     max_seeds : int
         The full-range seed sweep runs on at most this many points spread over the image (and on any point
         with no matched neighbours); the others are found by the surface passes.
@@ -328,6 +328,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     if not searchable.any():
         return empty
     idx = np.flatnonzero(searchable)
+    thr = np.broadcast_to(np.asarray(min_ncc, float), (N,))[idx]          # per point NCC gate
     o, d, uv0 = origins[idx], dirs[idx], uv_ref[idx]
     n = len(idx)
     others = [c for c in range(C) if c != ref and images[c] is not None]
@@ -391,7 +392,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
 
     # 2. surface passes: depth and normal from the plane through the matched neighbours
     for p in range(surface_passes + 1):
-        good = np.isfinite(t_fine) & (np.all(per_cam[:, others] >= min_ncc, axis=1) if others else False)
+        good = np.isfinite(t_fine) & (np.all(per_cam[:, others] >= thr[:, None], axis=1) if others else False)
         X = o + t_fine[:, None] * d
         t_pred, n_pred = local_planes(uv0, uv0[good], X[good], o, d)
         usable = np.flatnonzero(np.isfinite(t_pred))
@@ -412,7 +413,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     #    point is scored on the cameras that currently accept it (a camera that sees something else must not
     #    pull the normal), grouped by that set of cameras
     def accepted(pc):
-        return np.nan_to_num(pc[:, others], nan=-1.0) >= min_ncc if others else np.zeros((len(pc), 0), bool)
+        return np.nan_to_num(pc[:, others], nan=-1.0) >= thr[:, None] if others else np.zeros((len(pc), 0), bool)
 
     acc = accepted(per_cam)
     for tilt in refine_tilt_deg:
@@ -436,7 +437,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     view_ok = np.zeros((n, C), bool)
     view_ok[:, ref] = True
     for c in others:
-        view_ok[:, c] = np.nan_to_num(per_cam[:, c], nan=-1.0) >= min_ncc
+        view_ok[:, c] = np.nan_to_num(per_cam[:, c], nan=-1.0) >= thr
     n_ok = view_ok.sum(axis=1)
     two = n_ok == 2
     if len(others) >= 2:
@@ -451,7 +452,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
         use = [c for c, on in zip(others, pattern) if on]
         sub = np.flatnonzero(partial & np.all(view_ok[:, others] == pattern, axis=1))
         t2, pc2 = fine(sub, t_fine[sub], normals[sub], 1.0, use=use)
-        keep = np.all(np.nan_to_num(pc2[:, use], nan=-1.0) >= min_ncc, axis=1)
+        keep = np.all(np.nan_to_num(pc2[:, use], nan=-1.0) >= thr[sub, None], axis=1)
         t_fine[sub[keep]] = t2[keep]
         per_cam[sub[keep][:, None], use] = pc2[keep][:, use]
     good = np.isfinite(t_fine) & (view_ok.sum(axis=1) >= min_views)

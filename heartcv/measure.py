@@ -30,20 +30,34 @@ input raise :class:`MeasureFailed`; input that cannot be used raises :class:`hea
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import time
 
 import numpy as np
 
 from .backend import OpenCVBackend
-from .features import RegionNotFound, detect_corners, region_of_interest, saturation_mask
-from .klt import LKParams, template_patches, track_from_template
+from .features import detect_corners, moving_mask, region_of_interest, saturation_mask
+from .klt import (
+    ACCEPTED,
+    FORWARD_BACKWARD,
+    LOST,
+    PHOTOMETRIC,
+    LKParams,
+    TileSet,
+    cut_tiles,
+    expected_ncc,
+    flow_step,
+    template_patches,
+    track_tiles,
+)
 from .matching import match_points
+from .tissue import TissueNotFound, neutral_mask, noise_sigma, specular_mask, tissue_region
 from .tracker.files import InputError
 from .triangulation import triangulate
 
 __all__ = ["MeasureOptions", "MeasureResult", "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
-           "ROI_FRAMES", "reference_frames", "auto_region", "measure_sequence", "run_frames", "assemble_result"]
+           "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
+           "assemble_result"]
 
 # Frames of the reference camera from which the automatic region of interest is computed (every third of the
 # first 30: the surface moves enough between them to tell it from the static background)
@@ -57,25 +71,33 @@ class MeasureFailed(RuntimeError):
 
 @dataclass(frozen=True)
 class MeasureOptions:
-    """Settings of :class:`Measurer` (defaults suit the paper's rig at 1920x1080; docs/cli.md, measure)."""
+    """Settings of :class:`Measurer` (docs/cli.md, measure). Fields left at None follow the reference camera's
+    image size (:meth:`for_image`): the values below are those of a 1080-row image and shrink with the image's
+    smaller side down to a floor (a feature needs a few pixels whatever the image)."""
 
     ref_camera: int = 0
     max_points: int = 300
-    min_distance_px: float = 15.0
-    corner_block_size: int = 7
-    corner_quality: float = 0.02
+    min_distance_px: float | None = None        # 15 px at 1080 rows, at least 5
+    corner_block_size: int | None = None        # 7 px at 1080 rows, at least 3
+    corner_quality: float = 0.01
     refill_fraction: float = 0.8
-    roi_margin_px: int = 15
+    roi_margin_px: int | None = None            # 15 px at 1080 rows, at least 4
     saturation_level: int = 250
-    match_min_ncc: float = 0.85
-    respawn_interval: int = 30
-    match_radius: int = 7
-    lk: LKParams = field(default_factory=LKParams)
-    highpass_sigma: float | None = None
+    match_min_ncc: float | None = None          # fixed NCC gate of the matching (None: adaptive)
+    match_ncc_allowance: float = 0.15
+    track_ncc_allowance: float = 0.25
+    ncc_floor: float = 0.5
+    respawn_interval: int = 1
+    match_radius: int | None = None             # 7 px at 1080 rows, at least 4
+    lk: LKParams | None = None                  # window 21 px at 1080 rows (at least 11), NCC radius as match_radius
+    key_interval: int = 1
+    highpass_sigma: float | None = 3.0
     max_reprojection_px: float = 1.0
     outlier_px: float = 1.0
-    min_angle_deg: float = 5.0
+    min_angle_deg: float = 0.0
+    max_depth_std_ratio: float = 0.05
     max_gap_frames: int = 60
+    specular: bool = True
     pixel_sigma: float | None = None
     min_pixel_sigma: float = 0.01
 
@@ -86,6 +108,38 @@ class MeasureOptions:
             raise ValueError(f"refill_fraction: in (0, 1] expected, got {self.refill_fraction}")
         if self.pixel_sigma is not None and not self.pixel_sigma > 0:
             raise ValueError(f"pixel_sigma: positive expected, got {self.pixel_sigma}")
+        for name in ("respawn_interval", "key_interval", "max_gap_frames"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: at least 1 expected, got {getattr(self, name)}")
+        if not self.max_depth_std_ratio > 0:
+            raise ValueError(f"max_depth_std_ratio: positive expected, got {self.max_depth_std_ratio}")
+
+    def for_image(self, width: int, height: int) -> "MeasureOptions":
+        """These options with every size left at None set from the image size: with ``s = min(1, min(width,
+        height) / 1080)``, the least corner distance ``max(5, 15 s)`` px, the corner block ``max(3, 7 s)``, the
+        ROI margin ``max(4, 15 s)``, the NCC patch radius ``max(4, 7 s)`` and the LK window ``max(11, 21 s)``
+        (odd); 1080-row images get the sizes the paper's rig was tuned with (issue 5)."""
+        s = min(1.0, min(width, height) / 1080.0)
+
+        def odd(v):
+            v = int(round(v))
+            return v if v % 2 else v + 1
+
+        radius = self.match_radius if self.match_radius is not None else max(4, int(round(7 * s)))
+        lk = self.lk if self.lk is not None else LKParams(window=max(11, odd(21 * s)), ncc_radius=radius,
+                                                          fb_max_px=1.0, ncc_allowance=self.track_ncc_allowance)
+        return replace(
+            self,
+            min_distance_px=self.min_distance_px if self.min_distance_px is not None else max(5.0, 15.0 * s),
+            corner_block_size=self.corner_block_size if self.corner_block_size is not None
+            else max(3, odd(7 * s)),
+            roi_margin_px=self.roi_margin_px if self.roi_margin_px is not None else max(4, int(round(15 * s))),
+            match_radius=radius, lk=lk)
+
+
+#: The gates that remove candidates (``Measurer.rejected``; docs/cli.md, measure): per view and frame for the
+#: tracking gates, per point and frame for the triangulation gates, per new corner for the matching gate.
+GATES = ("lost", "forward_backward", "photometric", "specular", "reprojection", "depth_uncertainty", "match")
 
 
 @dataclass(frozen=True)
@@ -108,6 +162,7 @@ class MeasureResult:
     roi : ndarray (H, W) bool             region of interest in the reference camera
     timings : dict                        seconds spent per part (``tracking``, ``triangulation``, ``detection``)
     problems : list of str                frames or images skipped, with the reason
+    rejected : dict                       candidates each gate removed (:data:`GATES`)
     """
 
     frames: np.ndarray
@@ -124,6 +179,7 @@ class MeasureResult:
     roi: np.ndarray
     timings: dict
     problems: list
+    rejected: dict = field(default_factory=dict)
 
     @property
     def seen(self) -> np.ndarray:
@@ -139,6 +195,7 @@ class Measurer:
     cameras : sequence of Camera
         The calibrated rig (same order as the images).
     options : MeasureOptions
+        Sizes left at None follow the reference camera's image size (:meth:`MeasureOptions.for_image`).
     roi_frames : sequence of ndarray (H, W) uint8
         The first frames of the reference camera (for the automatic region of interest); ignored with ``roi``.
     roi : ndarray (H, W) bool, optional
@@ -149,14 +206,14 @@ class Measurer:
     def __init__(self, cameras, options: MeasureOptions = MeasureOptions(), *, roi_frames=None, roi=None,
                  backend=None):
         self.cameras = list(cameras)
-        self.opt = options
-        self.backend = backend or OpenCVBackend()
         C = len(self.cameras)
         if C < 2:
             raise ValueError(f"cameras: at least 2 expected, got {C}")
         if not 0 <= options.ref_camera < C:
             raise ValueError(f"ref_camera: 0..{C - 1} expected, got {options.ref_camera}")
         ref = self.cameras[options.ref_camera]
+        self.opt = options = options.for_image(ref.width, ref.height)
+        self.backend = backend or OpenCVBackend()
         if roi is not None:
             roi = np.asarray(roi, bool)
             if roi.shape != (ref.height, ref.width):
@@ -167,29 +224,42 @@ class Measurer:
                 raise ValueError("roi_frames: the first frames of the reference camera are needed without roi")
             m, _ = region_of_interest(roi_frames, margin=options.roi_margin_px)
         self.roi = m
-        self._G = (2 * options.lk.ncc_radius + 1) ** 2
-        # track state (grown by concatenation)
+        lk = options.lk
+        self._G = (2 * lk.ncc_radius + 1) ** 2
+        self._S = 2 * lk.tile_half + 1
+        # track state (grown by concatenation): per track, per camera
         self.ids = np.zeros(0, np.int64)
         self.birth = np.zeros(0, np.int64)
-        self.tmpl_uv = np.zeros((0, C, 2))
-        self.tmpl_patch = np.zeros((0, C, self._G), np.float32)
-        self.last_uv = np.zeros((0, C, 2))
+        self.birth_tmpl = self._empty_tiles(0)    # templates of the birth frame (drift-free)
+        self.key_tmpl = self._empty_tiles(0)      # templates of a recent frame (follow the appearance)
+        self.key_step = np.zeros((0, C), np.int64)
+        self.prev_uv = np.zeros((0, C, 2))        # accepted position in the previous step (NaN: not seen there)
+        self.carry_uv = np.zeros((0, C, 2))       # predicted position of a track while unseen
         self.last_X = np.zeros((0, 3))
         self.last_seen = np.zeros(0, np.int64)
         self.alive = np.zeros(0, bool)
-        self._templates = {}          # birth step -> per camera template image (None where it was missing)
+        self._prev_images = [None] * C
+        self._noise_var = [None] * C
         self._records = []            # per step: (track indices, X, unit cov, rms, uv (n, C, 2))
         self._frames = []
         self.timings = {"tracking": 0.0, "triangulation": 0.0, "detection": 0.0}
+        self.rejected = dict.fromkeys(GATES, 0)
         self.problems = []
         self._sq_resid = 0.0
         self._dof = 0
         self._last_spawn = None
         self.detected = False         # whether the last step detected and matched new points
 
+    def _empty_tiles(self, n):
+        C, S, G = len(self.cameras), self._S, self._G
+        return {"tiles": np.zeros((n, C, S, S), np.uint8), "origin": np.zeros((n, C, 2), np.int64),
+                "uv": np.full((n, C, 2), np.nan), "patch": np.full((n, C, G), np.nan, np.float32),
+                "expected": np.zeros((n, C))}
+
     # -- one frame ------------------------------------------------------------------------------------------------
     def step(self, frame_index, images):
-        """Process the images of one instant (one 8-bit gray array per camera, None where missing).
+        """Process the images of one instant (one 8-bit gray (H, W) or BGR (H, W, 3) array per camera, None where
+        missing; colour is used for the specular highlights).
 
         Returns the number of points seen in this frame."""
         C = len(self.cameras)
@@ -202,29 +272,47 @@ class Measurer:
         s = len(self._frames)
         self._frames.append(int(frame_index))
         t0 = time.perf_counter()
-        track_images = [None if im is None else self._prefilter(im) for im in images]
-        obs = self._track(s, track_images)
+        gray = [None if im is None else _gray(im) for im in images]
+        track_images = [None if g is None else self._prefilter(g) for g in gray]
+        for c, im in enumerate(track_images):
+            if im is not None and self._noise_var[c] is None:
+                self._noise_var[c] = noise_sigma(im) ** 2
+        spec = [self._highlights(im) for im in images]
+        obs = self._track(track_images, spec)
         t1 = time.perf_counter()
         idx, tri = self._triangulate(obs)
+        self._update_keys(s, idx, obs, track_images)
         t2 = time.perf_counter()
         seen = len(idx)
         ref = self.opt.ref_camera
         need = self.opt.refill_fraction * self.opt.max_points
         due = self._last_spawn is None or s - self._last_spawn >= self.opt.respawn_interval
-        self.detected = seen < need and due and images[ref] is not None and sum(im is not None for im in images) >= 2
+        self.detected = seen < need and due and gray[ref] is not None and sum(g is not None for g in gray) >= 2
         if self.detected:
             self._last_spawn = s
-            seen += self._spawn(s, images, track_images)
+            seen += self._spawn(s, gray, track_images, spec, colour=images[ref])
         t3 = time.perf_counter()
         self.timings["tracking"] += t1 - t0
         self.timings["triangulation"] += t2 - t1
         self.timings["detection"] += t3 - t2
+        self._prev_images = track_images
         self._expire(s)
         return seen
 
+    def _highlights(self, image):
+        """This frame's specular highlights (grown by the NCC patch radius), or None: near-white blobs of a colour
+        frame (:func:`heartcv.tissue.specular_mask`); in a gray frame bright tissue cannot be told from a highlight,
+        so only clipped pixels (``saturation_level``) count."""
+        if image is None or not self.opt.specular:
+            return None
+        grow = self.opt.lk.ncc_radius
+        if image.ndim == 3:
+            return specular_mask(image, grow_px=grow)
+        return saturation_mask(image, self.opt.saturation_level, grow=grow)
+
     def _prefilter(self, gray):
-        """The image the tracker sees: the gray image, or its high-pass ``128 + 2 (g - blur(g))`` (removes the slow
-        shading changes of a moving, curved surface) with ``highpass_sigma``."""
+        """The image the tracker sees: the gray image, or its high-pass ``128 + 2 (g - blur(g))`` with
+        ``highpass_sigma``."""
         sig = self.opt.highpass_sigma
         if not sig:
             return gray
@@ -233,43 +321,96 @@ class Measurer:
         blur = cv2.GaussianBlur(gray, (0, 0), sig)                    # uint8 in, uint8 out (SIMD)
         return cv2.addWeighted(gray, 2.0, blur, -2.0, 128.0)          # saturated to [0, 255]
 
-    def _track(self, s, images):
-        """Observations (P, C, 2) of the alive tracks in this frame (NaN where not accepted)."""
+    def _tiles(self, which, sel, c) -> TileSet:
+        t = which
+        return TileSet(t["tiles"][sel, c], t["origin"][sel, c], t["uv"][sel, c], t["patch"][sel, c],
+                       t["expected"][sel, c])
+
+    def _track(self, images, spec):
+        """Observations (P, C, 2) of the alive tracks in this frame (NaN where not accepted): frame-to-frame LK
+        for the starting guess, then alignment to the birth template (drift-free) or, where that fails, to the
+        key template (a recent frame's appearance)."""
         C = len(self.cameras)
         P = len(self.ids)
         obs = np.full((P, C, 2), np.nan)
+        self._anchored = np.zeros((P, C), bool)       # accepted against the birth template
         if P == 0:
             return obs
-        for b, tmpl in self._templates.items():
-            for c in range(C):
-                if images[c] is None or tmpl[c] is None:
-                    continue
-                sel = np.flatnonzero(self.alive & (self.birth == b) & np.isfinite(self.tmpl_uv[:, c, 0]))
-                if sel.size == 0:
-                    continue
-                init = self.last_uv[sel, c]
-                missing = ~np.isfinite(init).all(axis=1)
-                if missing.any():
-                    proj = self.cameras[c].project(self.last_X[sel[missing]])
-                    init[missing] = proj
-                uv, ok, _, _ = track_from_template(tmpl[c], images[c], self.tmpl_uv[sel, c],
-                                                   self.tmpl_patch[sel, c], init, self.opt.lk)
-                inside = self.cameras[c].in_image(uv, self.opt.lk.window / 2)
-                ok &= inside
-                obs[sel[ok], c] = uv[ok]
+        lk = self.opt.lk
+        for c in range(C):
+            cur = images[c]
+            if cur is None:
+                continue
+            cand = self.alive & np.isfinite(self.birth_tmpl["uv"][:, c, 0])
+            if not cand.any():
+                continue
+            init = np.full((P, 2), np.nan)
+            prev = cand & np.isfinite(self.prev_uv[:, c, 0])
+            if prev.any() and self._prev_images[c] is not None:
+                init[prev] = flow_step(self._prev_images[c], cur, self.prev_uv[prev, c], lk)
+            gap = cand & ~np.isfinite(init[:, 0])
+            init[gap] = np.where(np.isfinite(self.carry_uv[gap, c]), self.carry_uv[gap, c],
+                                 self.cameras[c].project(self.last_X[gap]))
+            sel = np.flatnonzero(cand)
+            uv, why, _, _ = track_tiles(self._tiles(self.birth_tmpl, sel, c), cur, init[sel], lk,
+                                        ncc_floor=self.opt.ncc_floor)
+            ok = why == ACCEPTED
+            obs[sel[ok], c] = uv[ok]
+            self._anchored[sel[ok], c] = True
+            retry = ~ok & (self.key_step[sel, c] != self.birth[sel])
+            if retry.any():
+                sk = sel[retry]
+                uv2, why2, _, _ = track_tiles(self._tiles(self.key_tmpl, sk, c), cur, init[sk], lk,
+                                              ncc_floor=self.opt.ncc_floor)
+                ok2 = why2 == ACCEPTED
+                obs[sk[ok2], c] = uv2[ok2]
+                why[np.flatnonzero(retry)] = why2
+            inside = self.cameras[c].in_image(np.nan_to_num(obs[sel, c], nan=-1e9), lk.window / 2)
+            why[(why == ACCEPTED) & ~inside] = LOST
+            obs[sel[~inside], c] = np.nan
+            if spec[c] is not None:
+                hit = (why == ACCEPTED) & _mask_at(spec[c], obs[sel, c])
+                why[hit] = -1
+                obs[sel[hit], c] = np.nan
+                self.rejected["specular"] += int(hit.sum())
+            for code, name in ((LOST, "lost"), (FORWARD_BACKWARD, "forward_backward"), (PHOTOMETRIC, "photometric")):
+                self.rejected[name] += int((why == code).sum())
         return obs
+
+    def _depth_ok(self, X, cov) -> np.ndarray:
+        """The depth-uncertainty gate: the standard deviation of each point's depth along the reference camera's
+        ray, at the pixel noise (``pixel_sigma`` or the estimate so far, else 0.5 px), at most
+        ``max_depth_std_ratio`` of the depth."""
+        d = X - self.cameras[self.opt.ref_camera].centre
+        depth = np.linalg.norm(d, axis=1)
+        u = d / depth[:, None]
+        var = np.einsum("ni,nij,nj->n", u, cov, u)
+        if self.opt.pixel_sigma is not None:
+            sigma = self.opt.pixel_sigma
+        else:
+            est = self.estimated_sigma()
+            sigma = est if np.isfinite(est) else 0.5
+        with np.errstate(invalid="ignore"):
+            return sigma * np.sqrt(np.maximum(var, 0.0)) <= self.opt.max_depth_std_ratio * depth
 
     def _triangulate(self, obs):
         """Triangulate the observed tracks, record them; returns (track indices, Triangulation)."""
         idx = np.flatnonzero(np.isfinite(obs[..., 0]).sum(axis=1) >= 2)
         s = len(self._frames) - 1
+        C = len(self.cameras)
         if idx.size == 0:
             self._records.append((idx, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0),
-                                  np.zeros((0, len(self.cameras), 2), np.float32)))
+                                  np.zeros((0, C, 2), np.float32)))
+            self.prev_uv[:] = np.nan
             return idx, None
         tri = triangulate(self.cameras, obs[idx], sigma_px=1.0, robust=True, outlier_px=self.opt.outlier_px,
                           max_rms_px=self.opt.max_reprojection_px, min_angle_deg=self.opt.min_angle_deg)
-        good = tri.ok
+        good = tri.ok.copy()
+        self.rejected["reprojection"] += int((~good).sum())
+        deep = good.copy()
+        deep[good] = self._depth_ok(tri.points[good], tri.covariances[good])
+        self.rejected["depth_uncertainty"] += int((good & ~deep).sum())
+        good = deep
         i = idx[good]
         used = tri.used[good]
         uv = np.where(used[..., None], obs[i], np.nan).astype(np.float32)
@@ -280,23 +421,76 @@ class Measurer:
         self._dof += int((2 * used.sum(axis=1) - 3).sum())
         self.last_X[i] = X
         self.last_seen[i] = s
-        # next frame's starting guesses: the accepted views, and the projection of X for the others
-        for c, cam in enumerate(self.cameras):
-            p = cam.project(X)
-            self.last_uv[i, c] = np.where(used[:, c, None], obs[i, c], p)
-        lost = np.setdiff1d(np.flatnonzero(self.alive), i)
-        self.last_uv[lost] = np.nan
+        self._carry(i, used, obs)
+        self.prev_uv[:] = np.nan
+        self.prev_uv[i] = np.where(used[..., None], obs[i], np.nan)
         return i, tri
 
-    def _spawn(self, s, images, track_images):
-        """Detect and match new points in free parts of the region; returns how many were added."""
+    def _carry(self, i, used, obs):
+        """Predicted positions of the tracks not seen in this frame: their last prediction (or position) moved
+        by the mean frame-to-frame motion of their 4 nearest tracks seen in both frames."""
+        from scipy.spatial import cKDTree
+
+        C = len(self.cameras)
+        for c in range(C):
+            vis = np.zeros(len(self.ids), bool)
+            vis[i[used[:, c]]] = True
+            both = vis & np.isfinite(self.prev_uv[:, c, 0])
+            start = np.where(np.isfinite(self.prev_uv[:, c]), self.prev_uv[:, c], self.carry_uv[:, c])
+            unseen = self.alive & ~vis & np.isfinite(start[:, 0])
+            if unseen.any() and both.sum() >= 1:
+                k = min(4, int(both.sum()))
+                tree = cKDTree(self.prev_uv[both, c])
+                _, nb = tree.query(start[unseen], k=k)
+                motion = obs[both, c] - self.prev_uv[both, c]
+                nb = np.asarray(nb).reshape(int(unseen.sum()), k)
+                self.carry_uv[unseen, c] = start[unseen] + motion[nb].mean(axis=1)
+            elif unseen.any():
+                self.carry_uv[unseen, c] = start[unseen]
+            self.carry_uv[vis, c] = np.nan
+
+    def _update_keys(self, s, i, obs, images):
+        """Key templates of the views seen in this frame, accepted against their birth template, whose key is
+        ``key_interval`` or more steps old: cut from this frame at the accepted position. Only positions aligned
+        to the birth template become keys, so a key is never more than one alignment away from the birth
+        template: tracking through keys does not drift."""
+        if i.size == 0:
+            return
+        for c, im in enumerate(images):
+            if im is None:
+                continue
+            u = i[np.isfinite(obs[i, c, 0]) & self._anchored[i, c] & (s - self.key_step[i, c] >= self.opt.key_interval)]
+            if u.size == 0:
+                continue
+            self._set_templates(self.key_tmpl, u, c, im, obs[u, c])
+            self.key_step[u, c] = s
+
+    def _set_templates(self, which, rows, c, image, uv):
+        tiles, origin = cut_tiles(image, uv, self.opt.lk.tile_half)
+        patch = template_patches(image, uv, self.opt.lk)
+        which["tiles"][rows, c] = tiles
+        which["origin"][rows, c] = origin
+        which["uv"][rows, c] = uv
+        which["patch"][rows, c] = patch
+        which["expected"][rows, c] = expected_ncc(patch, self._noise_var[c])
+
+    def _spawn(self, s, images, track_images, spec, colour=None):
+        """Detect and match new points in free parts of the region (not on this frame's highlights, nor, in colour
+        frames of colourful tissue, on near-neutral pixels: instruments that moved into the view); returns how many
+        were added."""
         o = self.opt
         ref = o.ref_camera
         C = len(self.cameras)
-        current = self.last_uv[self.alive & (self.last_seen == s), ref]
+        current = self.prev_uv[self.alive & (self.last_seen == s), ref]
         exclude = current[np.isfinite(current).all(axis=1)]
         gray = images[ref]
         mask = self.roi & ~saturation_mask(gray, o.saturation_level, grow=o.lk.window // 2)
+        if spec[ref] is not None:
+            mask &= ~spec[ref]
+        if colour is not None and colour.ndim == 3:
+            neutral = neutral_mask(colour, self.roi, grow_px=o.lk.window // 2)
+            if neutral is not None:
+                mask &= ~neutral
         room = o.max_points - len(exclude)
         if room <= 0:
             return 0
@@ -305,41 +499,58 @@ class Measurer:
         if len(uv) == 0:
             return 0
         imgs = [None if im is None else np.asarray(im, np.float32) for im in images]
-        m = match_points(self.cameras, imgs, ref, uv, radius=o.match_radius, min_ncc=o.match_min_ncc,
-                         backend=self.backend)
+        min_ncc = o.match_min_ncc
+        if min_ncc is None:
+            patch = template_patches(gray, uv, LKParams(ncc_radius=o.match_radius))
+            noise = [v for v in self._noise_var if v is not None]
+            expected = expected_ncc(patch, max(noise) if noise else 0.0)
+            min_ncc = np.maximum(o.ncc_floor, expected - o.match_ncc_allowance)
+        m = match_points(self.cameras, imgs, ref, uv, radius=o.match_radius, min_ncc=min_ncc, backend=self.backend)
         keep = m.ok
         for c, cam in enumerate(self.cameras):
             inside = cam.in_image(np.nan_to_num(m.uv[:, c], nan=-1e9), o.lk.window)
+            if spec[c] is not None:
+                inside &= ~_mask_at(spec[c], m.uv[:, c])
             m.uv[~inside, c] = np.nan
         keep &= np.isfinite(m.uv[..., 0]).sum(axis=1) >= 2
+        self.rejected["match"] += int((~keep).sum())
         if not keep.any():
             return 0
         uvk = m.uv[keep]
         tri = triangulate(self.cameras, uvk, sigma_px=1.0, robust=True, outlier_px=o.outlier_px,
                           max_rms_px=o.max_reprojection_px, min_angle_deg=o.min_angle_deg)
-        good = tri.ok
+        good = tri.ok.copy()
+        self.rejected["reprojection"] += int((~good).sum())
+        deep = good.copy()
+        deep[good] = self._depth_ok(tri.points[good], tri.covariances[good])
+        self.rejected["depth_uncertainty"] += int((good & ~deep).sum())
+        good = deep
         if not good.any():
             return 0
         uvk = np.where(tri.used[good][..., None], uvk[good], np.nan)
         n = len(uvk)
-        patches = np.full((n, C, self._G), np.nan, np.float32)
-        for c in range(C):
-            has = np.isfinite(uvk[:, c, 0])
-            if has.any():
-                patches[has, c] = template_patches(track_images[c], uvk[has, c], o.lk)
+        old = len(self.ids)
+        rows = np.arange(old, old + n)
         start = int(self.ids[-1]) + 1 if len(self.ids) else 0
         self.ids = np.r_[self.ids, start + np.arange(n)]
         self.birth = np.r_[self.birth, np.full(n, s)]
-        self.tmpl_uv = np.concatenate([self.tmpl_uv, uvk])
-        self.tmpl_patch = np.concatenate([self.tmpl_patch, patches])
-        self.last_uv = np.concatenate([self.last_uv, uvk])
+        for which in (self.birth_tmpl, self.key_tmpl):
+            grown = self._empty_tiles(n)
+            for key in which:
+                which[key] = np.concatenate([which[key], grown[key]])
+        for c in range(C):
+            has = np.isfinite(uvk[:, c, 0])
+            if has.any():
+                self._set_templates(self.birth_tmpl, rows[has], c, track_images[c], uvk[has, c])
+                self._set_templates(self.key_tmpl, rows[has], c, track_images[c], uvk[has, c])
+        self.key_step = np.concatenate([self.key_step, np.full((n, C), s)])
+        self.prev_uv = np.concatenate([self.prev_uv, uvk])
+        self.carry_uv = np.concatenate([self.carry_uv, np.full((n, C, 2), np.nan)])
         self.last_X = np.concatenate([self.last_X, tri.points[good]])
         self.last_seen = np.r_[self.last_seen, np.full(n, s)]
         self.alive = np.r_[self.alive, np.ones(n, bool)]
-        self._templates[s] = list(track_images)
-        new = np.arange(len(self.ids) - n, len(self.ids))
         i, X, cov, rms, uv = self._records[-1]
-        self._records[-1] = (np.r_[i, new], np.concatenate([X, tri.points[good]]),
+        self._records[-1] = (np.r_[i, rows], np.concatenate([X, tri.points[good]]),
                              np.concatenate([cov, tri.covariances[good]]), np.r_[rms, tri.rms_px[good]],
                              np.concatenate([uv, uvk.astype(np.float32)]))
         used = tri.used[good]
@@ -348,13 +559,12 @@ class Measurer:
         return n
 
     def _expire(self, s):
-        """End tracks unseen for too long; drop template images nobody uses."""
+        """End tracks unseen for more than ``max_gap_frames`` steps; free their templates."""
         gone = self.alive & (s - self.last_seen > self.opt.max_gap_frames)
-        self.alive &= ~gone
-        live_births = set(np.unique(self.birth[self.alive]).tolist())
-        for b in list(self._templates):
-            if b not in live_births and b != s:
-                del self._templates[b]
+        if gone.any():
+            self.alive &= ~gone
+            for which in (self.birth_tmpl, self.key_tmpl):
+                which["tiles"][gone] = 0
 
     def skip(self, frame_index, reason):
         """Record an instant that could not be processed at all (all points missing in it)."""
@@ -406,7 +616,8 @@ def assemble_result(tracker, ids) -> MeasureResult:
     ref = pos[tracker.birth, np.arange(P)] if P else np.zeros((0, 3))
     return MeasureResult(np.array(tracker._frames, np.int64), np.asarray(ids, np.int64).copy(),
                          tracker.birth.copy(), pos, cov, ref, uv, views, rms, sigma, estimated,
-                         np.asarray(tracker.roi, bool).copy(), dict(tracker.timings), list(tracker.problems))
+                         np.asarray(tracker.roi, bool).copy(), dict(tracker.timings), list(tracker.problems),
+                         dict(getattr(tracker, "rejected", {})))
 
 
 # =====================================================================================================================
@@ -482,24 +693,33 @@ def reference_frames(read, count: int, ref: int) -> list:
     return [im for im in images if im is not None]
 
 
-def auto_region(roi_frames, options: MeasureOptions) -> np.ndarray:
-    """The automatic region of interest (:func:`heartcv.features.region_of_interest`) of the reference camera's
-    first frames.
+def auto_region(roi_frames, options: MeasureOptions = MeasureOptions()) -> np.ndarray:
+    """The automatic region of interest of the reference camera's first frames: the tissue
+    (:func:`heartcv.tissue.tissue_region`: without dark borders, specular highlights, instruments and untextured
+    parts; frames in colour (BGR) for the instrument test), and of it only the part that moves
+    (:func:`heartcv.features.moving_mask`) when two or more frames show a moving part of at least 5 % of the
+    tissue (a static textured background is left out).
 
     Raises
     ------
     InputError
         No frame (none of the first frames of the reference camera could be read); field ``images``.
     MeasureFailed
-        No textured surface found in them.
+        Too little tissue in them; the message says what was removed and to pass ``--mask``.
     """
     if not roi_frames:
         raise InputError(None, f"none of the reference camera's frames {ROI_FRAMES.start}, "
                                f"{ROI_FRAMES.start + ROI_FRAMES.step}, ... can be read", "images")
     try:
-        mask, _ = region_of_interest(roi_frames, margin=options.roi_margin_px)
-    except RegionNotFound as exc:  # its documented failure: no (or too little) textured surface in the frames
-        raise MeasureFailed(str(exc)) from None
+        region = tissue_region(roi_frames)
+    except TissueNotFound as exc:
+        raise MeasureFailed(f"automatic region of interest: {exc}") from None
+    mask = region.mask
+    if len(roi_frames) >= 2:
+        gray = [_gray(f) for f in roi_frames]
+        moving = moving_mask(gray, noise_sigma(gray[0]))
+        if (mask & moving).sum() >= 0.05 * mask.sum():
+            mask = mask & moving
     return mask
 
 
@@ -537,8 +757,24 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
     run = run_frames(measurer, frames, clock, clock() - t0)
     if run.result.point_ids.size == 0 or not run.result.seen.any():
         raise MeasureFailed(f"no surface point could be tracked (region of interest {int(run.result.roi.sum())} px "
-                            f"in camera {measurer.cameras[options.ref_camera].name})")
+                            f"in camera {measurer.cameras[options.ref_camera].name}): "
+                            f"{emptied_by(run.result.rejected)}")
     return run
+
+
+#: The option of ``heartcv measure`` that loosens each gate (for the failure messages).
+GATE_OPTIONS = {"match": "--match-ncc-allowance or --min-ncc", "reprojection": "--max-reprojection",
+                "depth_uncertainty": "--max-depth-std", "photometric": "--ncc-allowance or --min-ncc",
+                "forward_backward": "--fb-max", "lost": "--window", "specular": "--no-specular"}
+
+
+def emptied_by(rejected) -> str:
+    """Which gates removed the candidates (largest first), with the option that loosens each."""
+    hits = sorted(((n, g) for g, n in rejected.items() if n), reverse=True)
+    if not hits:
+        return "no corner was detected in the region of interest (check the region and --corner-quality)"
+    parts = [f"{g} gate {n}" + (f" ({GATE_OPTIONS[g]})" if g in GATE_OPTIONS else "") for n, g in hits]
+    return "candidates removed by the " + ", ".join(parts)
 
 
 def run_frames(tracker, frames, clock, setup_s) -> SequenceRun:
@@ -569,3 +805,23 @@ def run_frames(tracker, frames, clock, setup_s) -> SequenceRun:
                                 d["detection"], int(seen), why is None and tracker.detected, why is not None))
         prev = now
     return SequenceRun(tracker.result(), tuple(stats), tuple(problems), setup_s)
+
+
+def _gray(image) -> np.ndarray:
+    """An 8-bit gray image of a gray (H, W) or BGR (H, W, 3) frame."""
+    if image.ndim == 2:
+        return image
+    import cv2
+
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+
+
+def _mask_at(mask, uv) -> np.ndarray:
+    """Whether each position (N, 2) falls on a True pixel of ``mask`` (nearest pixel; False outside or NaN)."""
+    H, W = mask.shape
+    finite = np.isfinite(uv).all(axis=1)
+    r = np.rint(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)
+    inside = finite & (r[:, 0] >= 0) & (r[:, 0] < W) & (r[:, 1] >= 0) & (r[:, 1] < H)
+    out = np.zeros(len(uv), bool)
+    out[inside] = mask[r[inside, 1], r[inside, 0]]
+    return out

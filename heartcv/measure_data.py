@@ -171,11 +171,41 @@ def truth_statistics(res, truth: dict, ref: int) -> dict:
 
 
 # -- summary and CSV --------------------------------------------------------------------------------------------------
+#: Cameras of one rig farther apart than this (m) mean a rig file not in metres (docs/cli.md, measure): heartcv
+#: watches a surface within reach of surgical instruments; a stereo endoscope's baseline is about 0.005 m.
+MAX_BASELINE_M = 1.0
+
+
+def check_rig_scale(cameras, source) -> None:
+    """Raise :class:`InputError` (field ``cam_from_rig``) when two cameras are farther apart than
+    :data:`MAX_BASELINE_M`: the rig was most likely written in millimetres."""
+    centres = np.array([c.centre for c in cameras])
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+    if d[i, j] > MAX_BASELINE_M:
+        raise InputError(source, f"cameras {cameras[i].name} and {cameras[j].name} are {d[i, j]:g} m apart (more "
+                                 f"than {MAX_BASELINE_M:g} m): is the rig in millimetres? heartcv rig files are in "
+                                 f"metres (a stereo endoscope's baseline is about 0.005 m)", "cam_from_rig")
+
+
+def track_lengths(seen) -> tuple[np.ndarray, np.ndarray]:
+    """Per track seen at least once: its span (frames from its first to its last frame seen, inclusive) and the
+    number of frames it was seen in."""
+    seen = np.asarray(seen, bool)
+    ever = seen.any(axis=0)
+    if not ever.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    first = np.argmax(seen, axis=0)
+    last = seen.shape[0] - 1 - np.argmax(seen[::-1], axis=0)
+    return (last - first + 1)[ever], seen.sum(axis=0)[ever]
+
+
 def measurement_summary(res, times, wall_s: float, decode_s: float) -> dict:
-    """The numbers of a run's summary (docs/cli.md §10, ``--json``): frames, tracks, points per frame, reprojection
-    RMS, sigma, views, rate and timings, region of interest."""
+    """The numbers of a run's summary (docs/cli.md §10, ``--json``): frames, tracks, points per frame, track
+    lengths, reprojection RMS, sigma, views, rate and timings, region of interest, candidates removed per gate."""
     seen = res.seen
     per_frame = seen.sum(axis=1)
+    span, count = track_lengths(seen)
     r = res.reprojection_rms[seen]
     n = int(len(times))
     return {"frames": n, "tracks": int(res.point_ids.size), "points_mean": float(per_frame.mean()),
@@ -184,7 +214,10 @@ def measurement_summary(res, times, wall_s: float, decode_s: float) -> dict:
             "sigma_px": res.sigma_px, "sigma_estimated": res.sigma_estimated,
             "views_mean": float(res.views[seen].mean()) if seen.any() else 0.0,
             "frames_per_s": n / wall_s if wall_s > 0 else None, "wall_s": wall_s,
-            "timings_s": {"decode": decode_s, **res.timings}, "roi_px": int(res.roi.sum())}
+            "timings_s": {"decode": decode_s, **res.timings}, "roi_px": int(res.roi.sum()),
+            "track_length_median_frames": float(np.median(span)) if span.size else 0.0,
+            "track_seen_median_frames": float(np.median(count)) if count.size else 0.0,
+            "rejected": {g: int(n) for g, n in getattr(res, "rejected", {}).items()}}
 
 
 def _num(v) -> str:

@@ -59,7 +59,8 @@ import logging
 
 import numpy as np
 
-__all__ = ["TissueNotFound", "TissueRegion", "specular_mask", "tissue_region", "DARK_FRACTION", "DARK_MIN",
+__all__ = ["TissueNotFound", "TissueRegion", "specular_mask", "tissue_region", "noise_sigma", "neutral_mask",
+           "DARK_FRACTION", "DARK_MIN",
            "SPECULAR_LEVEL_FRACTION", "SPECULAR_CONTRAST_FRACTION", "SPECULAR_CLIP", "SPECULAR_BLOB_FRACTION",
            "NEUTRAL_SATURATION", "CHROMA_CONTRAST", "TEXTURE_SNR", "HOLE_FRACTION", "ISLAND_FRACTION",
            "MIN_TISSUE_FRACTION"]
@@ -296,7 +297,7 @@ def _gradient_energy(gray, window, weight=None) -> np.ndarray:
     return num / np.maximum(den, 1e-3)
 
 
-def _noise_sigma(gray) -> float:
+def noise_sigma(gray) -> float:
     """Noise standard deviation (grey levels) of an image: Immerkaer's estimator (mean absolute response to the
     difference of two Laplacians, zero on any locally linear image) over the pixels away from strong edges
     (the 10 % strongest gradients left out, as edges leak into the estimator)."""
@@ -347,6 +348,27 @@ def _saturation(frame_bgr) -> np.ndarray:
     lstar = lab[..., 0] * (100.0 / 255.0)
     chroma = cv2.magnitude(lab[..., 1] - 128.0, lab[..., 2] - 128.0)
     return chroma / np.maximum(lstar, _L_FLOOR)
+
+
+def neutral_mask(frame_bgr, region=None, grow_px=0) -> np.ndarray | None:
+    """Near-neutral pixels of one colour frame (CIELAB saturation below :data:`NEUTRAL_SATURATION`: metal and
+    plastic instruments, not red tissue), grown by ``grow_px``; None when the frame is gray or too pale (the median
+    saturation over ``region``, default the whole frame, below ``CHROMA_CONTRAST * NEUTRAL_SATURATION``) for colour
+    to tell instruments from tissue. The per-frame counterpart of the instrument test of :func:`tissue_region`
+    (instruments move into the view after the first frames)."""
+    import cv2
+
+    frame_bgr = np.asarray(frame_bgr)
+    if frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3:
+        return None
+    sat = _saturation(frame_bgr)
+    sample = sat[::2, ::2] if region is None else sat[::2, ::2][np.asarray(region, bool)[::2, ::2]]
+    if sample.size == 0 or float(np.median(sample)) < CHROMA_CONTRAST * NEUTRAL_SATURATION:
+        return None
+    neutral = (sat < NEUTRAL_SATURATION).astype(np.uint8)
+    if grow_px > 0 and cv2.countNonZero(neutral):
+        neutral = cv2.dilate(neutral, _ellipse(int(grow_px)))
+    return neutral.view(bool)
 
 
 def _instrument(frames, lit, spec_frames, dark, reasons):
@@ -458,7 +480,7 @@ def tissue_region(frames, *, margin_px=None, min_fraction=MIN_TISSUE_FRACTION) -
     noise = []
     for (_, _, gray, _), sp in zip(chans, spec_frames):
         energy += _gradient_energy(gray, window, (~sp).astype(np.float32))
-        noise.append(_noise_sigma(gray))
+        noise.append(noise_sigma(gray))
     energy /= len(chans)
     sigma = max(float(np.median(noise)), 0.3)   # 0.3: 8-bit quantisation noise (1/sqrt(12)) at least
     snr = np.sqrt(np.maximum(energy, 0.0)) / (_noise_gain(window) * sigma)

@@ -168,7 +168,11 @@ def test_truncated_image_is_named_and_left_out(case, camera):
     assert f"{camera}/000005.png" in res.stderr and "truncated" in res.stderr
     here, using, before = _views_in_frame(case, 5, camera)
     assert using == []
-    assert len(here) >= len(before) // 2 >= 1
+    # the points seen by the two other cameras in the frame before are carried by them (points matched in only two
+    # cameras, one of them the lost one, cannot be: measured 21 of the 21 carried for cam0, of 47 seen before)
+    others = [c for c in ("cam0", "cam1", "cam2") if c != camera]
+    both = [r for r in before if all(r[f"u_{c}_px"] != "" for c in others)]
+    assert len(here) >= len(both) // 2 >= 1
     assert all(int(r["views"]) == 2 for r in here)
 
 

@@ -374,7 +374,7 @@ def test_measure_bug_in_the_set_up_is_an_internal_error(case, monkeypatch):
     ("measure", ["--pixel-sigma", "nan"], "'nan': a finite number expected"),
     ("measure", ["--min-distance", "-inf"], "'-inf': a finite number expected"),
     ("measure", ["--points", "1000001"], "1000001 is not in the range 1<=x<=1000000"),
-    ("measure", ["--frames", "1"], "1 is not in the range 2<=x<=1000000"),
+    ("measure", ["--frames", "0"], "0 is not in the range 1<=x<=1000000"),
     ("measure", ["--corner-block", "256"], "256 is not in the range 2<=x<=255"),
     ("measure", ["--workers", "0"], "0 is not in the range 1<=x<=1024"),
 ])

@@ -85,7 +85,10 @@ def test_tracks_bookkeeping(clean, scene):
     assert np.array_equal(r.frames, np.arange(scene.n_frames))
     assert P >= 25 and np.array_equal(r.point_ids, np.arange(P))            # unique, in order of birth
     assert np.array_equal(r.birth_frame, np.zeros(P, int))                  # all born in frame 0, none lost
-    assert r.seen.all() and (r.views == 3).all()
+    # every point seen in every frame; at most one view in 100 left out by the noise-adaptive photometric gate (a
+    # weakly textured patch in 2 grey levels of noise; measured: 1 of 816)
+    assert r.seen.all() and (r.views >= 2).all() and (r.views == 3).mean() >= 0.99
+    assert sum(r.rejected.values()) == r.rejected["photometric"] == (r.views < 3).sum()
     assert r.positions.shape == (K, P, 3) and r.covariances.shape == (K, P, 3, 3) and r.uv.shape == (K, P, 3, 2)
     assert np.array_equal(r.reference, r.positions[r.birth_frame, np.arange(P)])
     assert (r.reprojection_rms[r.seen] <= 1.0).all() and not r.problems
@@ -153,10 +156,11 @@ def test_an_occluder_hides_views_until_it_leaves(occluded, occluder, scene):
         u = r.uv[k, :, 1].astype(float)
         on = np.isfinite(u[:, 0])
         assert not occluder.hides(1, k, u[on]).any()
-    # the hidden points stay measured from cameras 0 and 2, accurately (measured: RMS 0.025 px, max 0.117 px)
+    # the hidden points stay measured from cameras 0 and 2, accurately (measured: RMS 0.038 px, max 0.182 px with the
+    # default high-pass prefilter, which doubles the noise the tracker sees; 0.025 / 0.117 px on raw gray)
     assert r.seen[hidden].all() and (r.views[hidden] == 2).all()
     e = _px_equivalent_errors(r, X_true)
-    assert np.sqrt(np.mean(e ** 2)) < 0.05 and e.max() < 0.15
+    assert np.sqrt(np.mean(e ** 2)) < 0.05 and e.max() < 0.25
     # after the occluder leaves, every track is seen by camera 1 again
     after = [k for k in range(K) if k > max(OCCLUDED_FRAMES)]
     assert np.isfinite(r.uv[after, :, 1, 0]).all() and (r.views[after] == 3).all()
@@ -214,7 +218,7 @@ def test_measure_sequence_failures(scene, frames):
     with pytest.raises(InputError, match=r"^images: none of the reference camera's frames 0, 3, \.\.\. can be read"):
         measure_sequence(_stream(frames), scene.cameras, opts, roi_frames=[])
     black = np.zeros_like(frames[0][0])
-    with pytest.raises(MeasureFailed, match="region of interest: no textured surface"):
+    with pytest.raises(MeasureFailed, match="automatic region of interest: no tissue region found.*Pass --mask"):
         measure_sequence(_stream(frames), scene.cameras, opts, roi_frames=[black, black])
     corner = np.zeros(black.shape, bool)
     corner[:20, :20] = True                                     # the black background: nothing to track

@@ -1,0 +1,201 @@
+"""``heartcv measure`` on stereo endoscope input (issue 14).
+
+Fast: bad input on a synthetic rectified pair (a rig in millimetres, a mask of another size, a camera whose images
+have another size: exit 2 naming the cause, nothing written), a single instant accepted, and ``--dense`` and
+``--overlay`` writing what they promise.
+
+Slow (``make test-slow`` / ``make measure-real``), on the Hamlyn in-vivo heart (../shared/data, 300 rectified
+360x288 pairs; skipped where the data is not reachable), rig from ``heartcv rig rectified --image-size 360x288
+--focal-px 390 --baseline-m 0.0055``, no option but ``--fps 25``: >= 150 points in every frame, median track span
+>= 150 frames, reprojection RMS <= 0.4 px, and no point on the instruments of four hand-annotated frames
+(tests/data/invivo_masks); ``--dense``: >= 1000 points in every frame.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from click.testing import CliRunner
+import numpy as np
+import pytest
+
+from heartcv.cli.main import main
+from tests.conftest import SHARED_DATA
+
+INVIVO = SHARED_DATA / "hamlyn_invivo_heart"
+MASKS = Path(__file__).resolve().parents[1] / "data" / "invivo_masks"
+W, H = 360, 288
+
+
+def _run(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def _rig(path, baseline="0.0055"):
+    res = _run("rig", "rectified", "--image-size", f"{W}x{H}", "--focal-px", "390", "--baseline-m", baseline,
+               "-o", path)
+    assert res.exit_code == 0, res.output
+    return path
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """A synthetic rectified pair: a textured plane 30 mm away (disparity 71.5 px), 2 instants, colour PNGs."""
+    import cv2
+
+    root = tmp_path_factory.mktemp("endoscope")
+    rng = np.random.default_rng(3)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (H, W + 300, 3)).astype(np.float32), (0, 0), 1.5)
+    tex = cv2.normalize(tex, None, 30, 220, cv2.NORM_MINMAX).astype(np.uint8)
+    tex[..., 2] = np.clip(tex[..., 2].astype(int) + 40, 0, 255)          # reddish: tissue, not an instrument
+    d = 390 * 0.0055 / 0.03
+    for k, shift in enumerate((0.0, 1.5)):
+        left = cv2.warpAffine(tex, np.float32([[1, 0, -150 + shift], [0, 1, 0]]), (W, H), flags=cv2.INTER_CUBIC)
+        right = cv2.warpAffine(tex, np.float32([[1, 0, -150 - d + shift], [0, 1, 0]]), (W, H),
+                               flags=cv2.INTER_CUBIC)
+        for cam, img in (("cam0", left), ("cam1", right)):
+            (root / "seq" / cam).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(root / "seq" / cam / f"{k:06d}.png"), img)
+    _rig(root / "rig.yaml")
+    return root
+
+
+def _measure(pair, tmp_path, *extra, seq=None, rig=None):
+    out = tmp_path / "m.npz"
+    res = _run("measure", seq or pair / "seq", "--rig", rig or pair / "rig.yaml", "-o", out, "--fps", "25", "--json",
+               *extra)
+    return res, out
+
+
+def _assert_exit_2(res, out, *words):
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output
+    for w in words:
+        assert w in res.output, (w, res.output)
+    assert not out.exists()
+
+
+def test_a_rig_in_millimetres_exit_2(pair, tmp_path):
+    res = _run("rig", "rectified", "--image-size", f"{W}x{H}", "--focal-px", "390", "--baseline-m", "5.5", "-o",
+               tmp_path / "mm.yaml")
+    if res.exit_code == 2:                      # caught where the rig is made
+        assert "5.5" in res.output and "Traceback" not in res.output
+        return
+    assert res.exit_code == 0, res.output
+    res, out = _measure(pair, tmp_path, rig=tmp_path / "mm.yaml")
+    _assert_exit_2(res, out, "mm.yaml", "cam_from_rig", "5.5 m apart", "millimetres")
+
+
+def test_a_mask_of_another_size_exit_2(pair, tmp_path):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "mask.png"), np.full((H // 2, W // 2), 255, np.uint8))
+    res, out = _measure(pair, tmp_path, "--mask", tmp_path / "mask.png")
+    _assert_exit_2(res, out, "mask.png", f"{W}x{H}")
+
+
+def test_cameras_with_different_image_sizes_exit_2(pair, tmp_path):
+    import shutil
+
+    import cv2
+
+    seq = tmp_path / "seq"
+    shutil.copytree(pair / "seq", seq)
+    for f in sorted((seq / "cam1").glob("*.png")):
+        cv2.imwrite(str(f), cv2.resize(cv2.imread(str(f)), (2 * W, 2 * H)))
+    res, out = _measure(pair, tmp_path, seq=seq)
+    _assert_exit_2(res, out, "cam1", f"{2 * W}x{2 * H}")
+
+
+def test_one_instant_is_enough(pair, tmp_path):
+    res, out = _measure(pair, tmp_path, "--frames", "1")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["frames"] == 1 and s["points_min"] >= 100
+    assert set(s["rejected"]) == {"lost", "forward_backward", "photometric", "specular", "reprojection",
+                                  "depth_uncertainty", "match"}
+    from heartcv.tracker.io import read_measurements
+
+    z = read_measurements(out).positions[0, :, 2]
+    assert np.allclose(z[np.isfinite(z)], 0.03, atol=0.0005)
+
+
+def test_two_instants_track_the_shift(pair, tmp_path):
+    res, out = _measure(pair, tmp_path)
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["frames"] == 2 and s["track_length_median_frames"] == 2.0 and s["track_seen_median_frames"] == 2.0
+    from heartcv.tracker.io import read_measurements
+
+    m = read_measurements(out)
+    both = np.isfinite(m.positions).all(axis=2).all(axis=0)
+    dx = m.positions[1, both, 0] - m.positions[0, both, 0]
+    assert np.allclose(dx, 1.5 * 0.03 / 390, atol=0.2 * 0.03 / 390)     # 1.5 px at 30 mm, within 0.2 px
+
+
+def test_dense_and_overlay(pair, tmp_path):
+    res, out = _measure(pair, tmp_path, "--dense", "--overlay", tmp_path / "ov")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["backend"] == "dense" and s["points_min"] >= 1000
+    assert (tmp_path / "ov" / "tracks.png").is_file()
+    assert sorted(p.name for p in (tmp_path / "ov" / "frames").iterdir()) == ["000000.png", "000001.png"]
+    # the overlay folder is never a person's folder
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    res, out2 = _measure(pair, tmp_path / "mine", "--overlay", tmp_path / "mine")
+    assert res.exit_code == 2 and (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+
+
+# -- the real in-vivo heart (slow) ------------------------------------------------------------------------------------
+invivo = pytest.mark.skipif(not INVIVO.is_dir(), reason="shared data not available (hamlyn_invivo_heart)")
+
+
+@pytest.fixture(scope="module")
+def invivo_rig(tmp_path_factory):
+    return _rig(tmp_path_factory.mktemp("invivo") / "rig.yaml")
+
+
+@pytest.mark.slow
+@invivo
+def test_invivo_acceptance(invivo_rig, tmp_path):
+    import cv2
+
+    from heartcv.tracker.io import read_measurements
+
+    out = tmp_path / "m.npz"
+    res = _run("measure", INVIVO, "--rig", invivo_rig, "-o", out, "--fps", "25", "--json", "--csv",
+               tmp_path / "m.csv")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["frames"] == 300
+    assert s["points_min"] >= 150, s
+    assert s["track_length_median_frames"] >= 150, s
+    assert s["reprojection_rms_px"] <= 0.4, s
+    # no point on an instrument in the hand-annotated frames (the reference camera's pixel positions)
+    import csv
+
+    rows = [r for r in csv.DictReader(line for line in open(tmp_path / "m.csv") if not line.startswith("#"))]
+    checked = 0
+    for name in ("000000", "000100", "000200", "000299"):
+        inst = cv2.imread(str(MASKS / f"{name}_instrument.png"), cv2.IMREAD_GRAYSCALE) > 0
+        k = int(name)
+        uv = np.array([[float(r["u_cam0_px"]), float(r["v_cam0_px"])] for r in rows
+                       if int(r["frame"]) == k and r["u_cam0_px"] != ""])
+        assert len(uv) >= 150
+        px = np.rint(uv).astype(int)
+        assert not inst[px[:, 1], px[:, 0]].any(), (name, uv[inst[px[:, 1], px[:, 0]]])
+        checked += len(uv)
+    assert checked >= 600
+    m = read_measurements(out)
+    assert m.n_frames == 300 and m.frame == "rig"
+
+
+@pytest.mark.slow
+@invivo
+def test_invivo_dense_acceptance(invivo_rig, tmp_path):
+    res = _run("measure", INVIVO, "--rig", invivo_rig, "-o", tmp_path / "d.npz", "--fps", "25", "--json", "--dense")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["frames"] == 300 and s["points_min"] >= 1000, s

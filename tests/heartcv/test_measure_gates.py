@@ -1,0 +1,93 @@
+"""The gates of heartcv.measure against closed forms: the depth-uncertainty gate on a rectified stereo pair
+(sigma_Z = sqrt(2) sigma Z^2 / (f B)), the image-size defaults, the per-gate counts and the failure message that
+names the gate which emptied the candidate set; the rig-scale check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from heartcv.camera import Camera
+from heartcv.measure import GATES, MeasureFailed, MeasureOptions, Measurer, emptied_by, measure_sequence
+from heartcv.triangulation import triangulate
+
+F, B, W, H = 390.0, 0.0055, 360, 288
+
+
+def _rectified_pair():
+    K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1]])
+    T = np.eye(4)
+    T[0, 3] = -B                                               # the right camera 5.5 mm along +x
+    return [Camera("cam0", W, H, K), Camera("cam1", W, H, K, cam_from_rig=T)]
+
+
+def test_depth_gate_matches_the_rectified_closed_form():
+    cams = _rectified_pair()
+    sigma, ratio = 0.5, 0.05
+    m = Measurer(cams, MeasureOptions(pixel_sigma=sigma, max_depth_std_ratio=ratio), roi=np.ones((H, W), bool))
+    # on the optical axis: Z = f B / d, var(d) = 2 sigma^2, so sigma_Z / Z = sqrt(2) sigma Z / (f B)
+    z_star = ratio * F * B / (np.sqrt(2) * sigma)             # 0.152 m
+    Z = np.array([0.5, 0.9, 0.99, 1.01, 1.1, 2.0]) * z_star
+    X = np.stack([np.zeros_like(Z), np.zeros_like(Z), Z], axis=1)
+    uv = np.stack([c.project(X) for c in cams], axis=1)
+    tri = triangulate(cams, uv, sigma_px=1.0)
+    rel = sigma * np.sqrt(tri.covariances[:, 2, 2]) / Z
+    assert np.allclose(rel, np.sqrt(2) * sigma * Z / (F * B), rtol=1e-3)
+    assert np.array_equal(m._depth_ok(tri.points, tri.covariances), [True, True, True, False, False, False])
+
+
+def test_defaults_follow_the_image_size():
+    big = MeasureOptions().for_image(1920, 1080)
+    assert (big.min_distance_px, big.corner_block_size, big.roi_margin_px, big.match_radius) == (15.0, 7, 15, 7)
+    assert big.lk.window == 21 and big.lk.ncc_radius == 7
+    small = MeasureOptions().for_image(360, 288)
+    assert (small.min_distance_px, small.corner_block_size, small.roi_margin_px, small.match_radius) == (5.0, 3, 4, 4)
+    assert small.lk.window == 11 and small.lk.ncc_radius == 4
+    # explicit values are kept, and resolving twice changes nothing
+    o = MeasureOptions(min_distance_px=9.0, corner_block_size=5).for_image(360, 288)
+    assert (o.min_distance_px, o.corner_block_size) == (9.0, 5) and o.for_image(1920, 1080) == o
+
+
+def test_emptied_by_names_the_gate_and_its_option():
+    msg = emptied_by({"match": 3, "depth_uncertainty": 40, "reprojection": 0})
+    assert msg.index("depth_uncertainty gate 40 (--max-depth-std)") < msg.index("match gate 3")
+    assert "reprojection" not in msg
+    assert "no corner was detected" in emptied_by(dict.fromkeys(GATES, 0))
+
+
+def test_a_too_strict_depth_gate_empties_the_set_and_says_so():
+    """Two views of a textured plane 30 mm away, a tolerance no point can meet: exit as MeasureFailed naming the
+    depth-uncertainty gate, after counting every removed point there."""
+    import cv2
+
+    cams = _rectified_pair()
+    rng = np.random.default_rng(0)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (H, W + 200)).astype(np.float32), (0, 0), 1.5)
+    tex = cv2.normalize(tex, None, 20, 230, cv2.NORM_MINMAX).astype(np.uint8)
+    d = F * B / 0.03                                           # disparity of the plane, 71.5 px
+    left = tex[:, 100:100 + W]
+    right = cv2.warpAffine(tex, np.float32([[1, 0, -100 - d], [0, 1, 0]]), (W, H), flags=cv2.INTER_CUBIC)
+    frames = [(0, [left, right], [])]
+    run = measure_sequence(iter(frames), cams, MeasureOptions(pixel_sigma=0.5), roi=np.ones((H, W), bool))
+    n = int(run.result.seen.sum())
+    assert n >= 50
+    Z = run.result.positions[0][run.result.seen[0], 2]
+    assert np.allclose(Z, 0.03, atol=0.0005)                   # the plane, single instant accepted
+    with pytest.raises(MeasureFailed, match=r"depth_uncertainty gate \d+ \(--max-depth-std\)") as exc:
+        measure_sequence(iter(frames), cams, MeasureOptions(pixel_sigma=0.5, max_depth_std_ratio=1e-4),
+                         roi=np.ones((H, W), bool))
+    assert "match" not in str(exc.value).split("gate")[0]
+
+
+def test_rig_in_millimetres_is_refused():
+    from heartcv.measure_data import MAX_BASELINE_M, check_rig_scale
+    from heartcv.tracker.files import InputError
+
+    cams = _rectified_pair()
+    check_rig_scale(cams, "rig.yaml")                          # 5.5 mm: fine
+    T = np.eye(4)
+    T[0, 3] = -5.5                                             # the same rig written in millimetres
+    mm = [cams[0], cams[1].with_pose(T)]
+    with pytest.raises(InputError, match=r"cam0 and cam1 are 5.5 m apart.*millimetres") as exc:
+        check_rig_scale(mm, "rig.yaml")
+    assert exc.value.field == "cam_from_rig" and MAX_BASELINE_M == 1.0
