@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
 TORCH ?= torch==2.13.0
 
-.PHONY: test test-slow demo bench clean-venv fuzz calibrate-real
+.PHONY: test test-slow demo bench clean-venv fuzz calibrate-real measure-real
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -53,3 +53,16 @@ calibrate-real: $(STAMP)
 
 clean-venv:
 	rm -rf $(VENV)
+
+# the real in-vivo beating heart (../shared/data/hamlyn_invivo_heart, 300 rectified 360x288 stereo pairs, no
+# calibration): rig from the rectified geometry, the sparse and dense measurement with an overlay, and the
+# acceptance tests of issue 14
+IV := ../shared/data/hamlyn_invivo_heart
+IV_OUT := sample_sequences/work/invivo
+measure-real: $(STAMP)
+	mkdir -p $(IV_OUT)
+	$(PY) -m heartcv.cli.main rig rectified --image-size 360x288 --focal-px 390 --baseline-m 0.0055 -o $(IV_OUT)/rig.yaml
+	$(PY) -m heartcv.cli.main measure $(IV) --rig $(IV_OUT)/rig.yaml -o $(IV_OUT)/measurements.npz --fps 25 \
+		--overlay $(IV_OUT)/overlay --json
+	$(PY) -m heartcv.cli.main measure $(IV) --rig $(IV_OUT)/rig.yaml -o $(IV_OUT)/dense.npz --fps 25 --dense --json
+	$(PY) -m pytest -q -m slow tests/cli/test_measure_endoscope.py
