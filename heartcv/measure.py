@@ -393,6 +393,19 @@ class Measurer:
         with np.errstate(invalid="ignore"):
             return sigma * np.sqrt(np.maximum(var, 0.0)) <= self.opt.max_depth_std_ratio * depth
 
+    def _gated_triangulation(self, uv):
+        """Triangulate observations (n, C, 2) (unit pixel sigma) and apply the reprojection and depth-uncertainty
+        gates, counting what each removes; returns (Triangulation, kept (n,) bool)."""
+        o = self.opt
+        tri = triangulate(self.cameras, uv, sigma_px=1.0, robust=True, outlier_px=o.outlier_px,
+                          max_rms_px=o.max_reprojection_px, min_angle_deg=o.min_angle_deg)
+        good = tri.ok.copy()
+        self.rejected["reprojection"] += int((~good).sum())
+        deep = good.copy()
+        deep[good] = self._depth_ok(tri.points[good], tri.covariances[good])
+        self.rejected["depth_uncertainty"] += int((good & ~deep).sum())
+        return tri, deep
+
     def _triangulate(self, obs):
         """Triangulate the observed tracks, record them; returns (track indices, Triangulation)."""
         idx = np.flatnonzero(np.isfinite(obs[..., 0]).sum(axis=1) >= 2)
@@ -403,14 +416,7 @@ class Measurer:
                                   np.zeros((0, C, 2), np.float32)))
             self.prev_uv[:] = np.nan
             return idx, None
-        tri = triangulate(self.cameras, obs[idx], sigma_px=1.0, robust=True, outlier_px=self.opt.outlier_px,
-                          max_rms_px=self.opt.max_reprojection_px, min_angle_deg=self.opt.min_angle_deg)
-        good = tri.ok.copy()
-        self.rejected["reprojection"] += int((~good).sum())
-        deep = good.copy()
-        deep[good] = self._depth_ok(tri.points[good], tri.covariances[good])
-        self.rejected["depth_uncertainty"] += int((good & ~deep).sum())
-        good = deep
+        tri, good = self._gated_triangulation(obs[idx])
         i = idx[good]
         used = tri.used[good]
         uv = np.where(used[..., None], obs[i], np.nan).astype(np.float32)
@@ -517,14 +523,7 @@ class Measurer:
         if not keep.any():
             return 0
         uvk = m.uv[keep]
-        tri = triangulate(self.cameras, uvk, sigma_px=1.0, robust=True, outlier_px=o.outlier_px,
-                          max_rms_px=o.max_reprojection_px, min_angle_deg=o.min_angle_deg)
-        good = tri.ok.copy()
-        self.rejected["reprojection"] += int((~good).sum())
-        deep = good.copy()
-        deep[good] = self._depth_ok(tri.points[good], tri.covariances[good])
-        self.rejected["depth_uncertainty"] += int((good & ~deep).sum())
-        good = deep
+        tri, good = self._gated_triangulation(uvk)
         if not good.any():
             return 0
         uvk = np.where(tri.used[good][..., None], uvk[good], np.nan)
