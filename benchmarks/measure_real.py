@@ -117,7 +117,7 @@ def _sparse_options(width: int, height: int):
     try:
         from heartcv.cli.measure import _options as cli_options
 
-        cli = cli_options(0, 300, None, None, None, 0.01, 3.0).resolve(width, height)
+        cli = cli_options(0, 300, None, None, None, 0.01, 3.0).for_image(width, height)
         note = "equal to the CLI's defaults" if cli == opts else f"DIFFERS from the CLI's defaults: {cli}"
     except Exception as exc:  # the CLI's private builder changed: not checked
         note = f"not compared with cli/measure.py ({type(exc).__name__}: {exc})"
@@ -285,7 +285,7 @@ def bench_real(*, quick: bool = False) -> dict:
     out["options"] = {"note": opts_note, "max_points": opts.max_points, "min_distance_px": opts.min_distance_px,
                       "corner_block_size": opts.corner_block_size, "corner_quality": opts.corner_quality,
                       "highpass_sigma": opts.highpass_sigma, "lk_window": opts.lk.window,
-                      "match_radius": opts.match_radius, "roi_margin_px": opts.roi_margin_px}
+                      "match_radius": opts.match_radius}
     print(f"sparse options: MeasureOptions().for_image({W}, {H}) ({opts_note}): {opts.max_points} points, "
           f"min distance {opts.min_distance_px:g} px, corner block {opts.corner_block_size}, quality "
           f"{opts.corner_quality:g}, LK window {opts.lk.window}, NCC radius {opts.match_radius}, highpass "

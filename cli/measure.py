@@ -284,31 +284,9 @@ def _options(ref, max_points, pixel_sigma, min_distance, corner_block, corner_qu
                           match_min_ncc=min_ncc, match_ncc_allowance=match_ncc_allowance,
                           track_ncc_allowance=ncc_allowance,
                           max_reprojection_px=max_reprojection, outlier_px=max_reprojection, min_angle_deg=min_angle,
-                          max_depth_std_ratio=max_depth_std, max_gap_frames=max_gap, specular=specular)
-    return _Pending(base, window=window, fb_max=fb_max, min_ncc=min_ncc, ncc_allowance=ncc_allowance)
-
-
-class _Pending:
-    """Sparse options whose image-size-dependent parts (the LK window) are set once the rig's image size is known
-    (:meth:`resolve`)."""
-
-    def __init__(self, base, **lk):
-        self.base, self.lk = base, lk
-        self.ref_camera = base.ref_camera
-
-    def resolve(self, width, height):
-        from dataclasses import replace
-
-        from heartcv.klt import LKParams
-
-        o = self.base.for_image(width, height)
-        lk = o.lk
-        window = self.lk["window"] or lk.window
-        adaptive = self.lk["min_ncc"] is None
-        lk = LKParams(window=window, ncc_radius=lk.ncc_radius, fb_max_px=self.lk["fb_max"],
-                      min_ncc=lk.min_ncc if adaptive else self.lk["min_ncc"],
-                      ncc_allowance=self.lk["ncc_allowance"] if adaptive else None)
-        return replace(o, lk=lk)
+                          max_depth_std_ratio=max_depth_std, max_gap_frames=max_gap, specular=specular,
+                          window_px=window, fb_max_px=fb_max, track_min_ncc=min_ncc)
+    return base
 
 
 def _dense_options(ref, pixel_sigma):
@@ -337,7 +315,6 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 run = dense_sequence(frames, rig.cameras, opts, roi=roi)
         else:
             ref_cam = rig.cameras[opts.ref_camera]
-            opts = opts.resolve(ref_cam.width, ref_cam.height)
             if roi is None:
                 roi = auto_region(reference_frames(reader.read, count, opts.ref_camera), opts)
                 log.info("automatic region of interest: %d px (%.0f %% of camera %s); --mask to choose it",

@@ -2,20 +2,24 @@
 
 The pipeline of ``heartcv measure`` (docs/cli.md), frame by frame:
 
-1. *Region of interest*: given, or the moving, textured surface of the reference camera's first frames
-   (:func:`heartcv.features.region_of_interest`).
-2. *Reference detection*: Shi–Tomasi corners spread over the region (grid buckets), away from specular
-   highlights, matched in every other camera by the trinocular plane sweep (:mod:`heartcv.matching`).
-3. *Temporal tracking*: every view of every point is tracked by Lucas–Kanade from the image the point was born
-   in (:mod:`heartcv.klt`; forward–backward and NCC checks), so tracks do not drift.
+1. *Region of interest*: given, or :func:`auto_region` of the reference camera's first frames (the tissue, without
+   dark borders, highlights, instruments and untextured parts, and its moving part when one is seen).
+2. *Reference detection*: Shi–Tomasi corners spread over the region (grid buckets), away from this frame's
+   highlights and (colour frames) near-neutral instrument pixels, matched in every other camera by the trinocular
+   plane sweep (:mod:`heartcv.matching`) with a noise-adaptive NCC gate.
+3. *Temporal tracking* (:mod:`heartcv.klt`): frame-to-frame pyramidal LK gives each view's starting guess; the
+   view is then aligned to its birth template and, where that fails, to its key template (the last frame where it
+   was aligned to its birth template), all points of a camera in one LK call on a mosaic of per-point tiles;
+   forward–backward, noise-adaptive NCC and per-frame highlight gates. A key is never more than one alignment
+   from the birth template, so tracks do not drift.
 4. *Triangulation* of the accepted views of each point (:func:`heartcv.triangulation.triangulate`: linear, then
    Gauss–Newton on the reprojection error, worst view dropped while it exceeds ``outlier_px``); points with a
-   poor reprojection RMS or triangulation angle are missing in that frame.
+   poor reprojection RMS, or whose predicted depth standard deviation exceeds ``max_depth_std_ratio`` of the
+   depth, are missing in that frame. Every gate counts what it removed (:data:`GATES`, ``Measurer.rejected``).
 5. *Re-detection*: when fewer than ``refill_fraction * max_points`` points are seen (checked at most every
    ``respawn_interval`` frames), new corners are detected in the free parts of the region and matched; they
-   start new tracks (new ids). A track unseen for more than
-   ``max_gap_frames`` frames ends; until then it is searched for in every frame (it resumes after an
-   occlusion).
+   start new tracks (new ids). A track unseen for more than ``max_gap_frames`` frames ends; until then it is
+   predicted from its neighbours' motion and searched for in every frame (it resumes after an occlusion).
 6. *Covariances*: the pixel noise sigma is estimated from the reprojection residuals of all accepted
    observations (pooled, ``sum r^2 / sum (2 n_views - 3)``) unless given, and propagated through the
    triangulation Jacobian: ``C = sigma^2 (sum_c J_c^T J_c)^-1`` (Hartley & Zisserman §5.2).
@@ -36,7 +40,7 @@ import time
 import numpy as np
 
 from .backend import OpenCVBackend
-from .features import detect_corners, moving_mask, region_of_interest, saturation_mask
+from .features import detect_corners, moving_mask, saturation_mask
 from .klt import (
     ACCEPTED,
     FORWARD_BACKWARD,
@@ -81,7 +85,6 @@ class MeasureOptions:
     corner_block_size: int | None = None        # 7 px at 1080 rows, at least 3
     corner_quality: float = 0.01
     refill_fraction: float = 0.8
-    roi_margin_px: int | None = None            # 15 px at 1080 rows, at least 4
     saturation_level: int = 250
     match_min_ncc: float | None = None          # fixed NCC gate of the matching (None: adaptive)
     match_ncc_allowance: float = 0.15
@@ -89,7 +92,10 @@ class MeasureOptions:
     ncc_floor: float = 0.5
     respawn_interval: int = 1
     match_radius: int | None = None             # 7 px at 1080 rows, at least 4
-    lk: LKParams | None = None                  # window 21 px at 1080 rows (at least 11), NCC radius as match_radius
+    lk: LKParams | None = None                  # None: from the fields below and the image size
+    window_px: int | None = None                # LK window: 21 px at 1080 rows, at least 11 (odd)
+    fb_max_px: float = 1.0
+    track_min_ncc: float | None = None          # fixed NCC gate of the tracking (None: adaptive)
     key_interval: int = 1
     highpass_sigma: float | None = 3.0
     max_reprojection_px: float = 1.0
@@ -116,9 +122,10 @@ class MeasureOptions:
 
     def for_image(self, width: int, height: int) -> "MeasureOptions":
         """These options with every size left at None set from the image size: with ``s = min(1, min(width,
-        height) / 1080)``, the least corner distance ``max(5, 15 s)`` px, the corner block ``max(3, 7 s)``, the
-        ROI margin ``max(4, 15 s)``, the NCC patch radius ``max(4, 7 s)`` and the LK window ``max(11, 21 s)``
-        (odd); 1080-row images get the sizes the paper's rig was tuned with (issue 5)."""
+        height) / 1080)``, the least corner distance ``max(5, 15 s)`` px, the corner block ``max(3, 7 s)``, the NCC
+        patch radius ``max(4, 7 s)`` and the LK window ``max(11, 21 s)`` (odd); 1080-row images get the sizes the
+        paper's rig was tuned with (issue 5). Without ``lk``, the LK settings are built from ``window_px``,
+        ``fb_max_px`` and the tracking NCC gate (``track_min_ncc``, else adaptive with ``track_ncc_allowance``)."""
         s = min(1.0, min(width, height) / 1080.0)
 
         def odd(v):
@@ -126,14 +133,18 @@ class MeasureOptions:
             return v if v % 2 else v + 1
 
         radius = self.match_radius if self.match_radius is not None else max(4, int(round(7 * s)))
-        lk = self.lk if self.lk is not None else LKParams(window=max(11, odd(21 * s)), ncc_radius=radius,
-                                                          fb_max_px=1.0, ncc_allowance=self.track_ncc_allowance)
+        lk = self.lk
+        if lk is None:
+            window = self.window_px if self.window_px is not None else max(11, odd(21 * s))
+            fixed = self.track_min_ncc is not None
+            lk = LKParams(window=window, ncc_radius=radius, fb_max_px=self.fb_max_px,
+                          min_ncc=self.track_min_ncc if fixed else LKParams.min_ncc,
+                          ncc_allowance=None if fixed else self.track_ncc_allowance)
         return replace(
             self,
             min_distance_px=self.min_distance_px if self.min_distance_px is not None else max(5.0, 15.0 * s),
             corner_block_size=self.corner_block_size if self.corner_block_size is not None
             else max(3, odd(7 * s)),
-            roi_margin_px=self.roi_margin_px if self.roi_margin_px is not None else max(4, int(round(15 * s))),
             match_radius=radius, lk=lk)
 
 
@@ -222,7 +233,7 @@ class Measurer:
         else:
             if not roi_frames:
                 raise ValueError("roi_frames: the first frames of the reference camera are needed without roi")
-            m, _ = region_of_interest(roi_frames, margin=options.roi_margin_px)
+            m = auto_region(roi_frames, options)
         self.roi = m
         lk = options.lk
         self._G = (2 * lk.ncc_radius + 1) ** 2

@@ -38,11 +38,13 @@ def test_depth_gate_matches_the_rectified_closed_form():
 
 def test_defaults_follow_the_image_size():
     big = MeasureOptions().for_image(1920, 1080)
-    assert (big.min_distance_px, big.corner_block_size, big.roi_margin_px, big.match_radius) == (15.0, 7, 15, 7)
+    assert (big.min_distance_px, big.corner_block_size, big.match_radius) == (15.0, 7, 7)
     assert big.lk.window == 21 and big.lk.ncc_radius == 7
     small = MeasureOptions().for_image(360, 288)
-    assert (small.min_distance_px, small.corner_block_size, small.roi_margin_px, small.match_radius) == (5.0, 3, 4, 4)
-    assert small.lk.window == 11 and small.lk.ncc_radius == 4
+    assert (small.min_distance_px, small.corner_block_size, small.match_radius) == (5.0, 3, 4)
+    assert small.lk.window == 11 and small.lk.ncc_radius == 4 and small.lk.ncc_allowance == 0.25
+    fixed = MeasureOptions(window_px=15, fb_max_px=0.3, track_min_ncc=0.8).for_image(360, 288).lk
+    assert (fixed.window, fixed.fb_max_px, fixed.min_ncc, fixed.ncc_allowance) == (15, 0.3, 0.8, None)
     # explicit values are kept, and resolving twice changes nothing
     o = MeasureOptions(min_distance_px=9.0, corner_block_size=5).for_image(360, 288)
     assert (o.min_distance_px, o.corner_block_size) == (9.0, 5) and o.for_image(1920, 1080) == o
