@@ -6,7 +6,8 @@ file says otherwise. Pixel coordinates: the centre of the top-left pixel is (0, 
 
 Distortion coefficients follow ``cv2.projectPoints``: ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[,
 tau_x, tau_y]]]])`` -- 4, 5, 8, 12 or 14 values (0 = none). The projection is implemented here in numpy
-(vectorised, with exact Jacobians by complex-step differentiation) and is tested against ``cv2.projectPoints``.
+(vectorised, with exact analytic Jacobians; complex-step differentiation of the distortion for a tilted
+sensor) and is tested against ``cv2.projectPoints``.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["Camera", "Rig", "DIST_SIZES", "pose_matrix", "invert_pose"]
+__all__ = ["Camera", "Rig", "DIST_SIZES", "pose_matrix", "invert_pose", "distort_normalised", "distortion_jacobian"]
 
 DIST_SIZES = (0, 4, 5, 8, 12, 14)
 
@@ -65,6 +66,8 @@ def _tilt_matrix(tau_x, tau_y):
 def distort_normalised(xy, dist) -> np.ndarray:
     """OpenCV distortion of normalised image coordinates ``(x/z, y/z)`` (..., 2) -> (..., 2)."""
     d = _full_dist(np.asarray(dist))
+    if not d.any():                     # no distortion (e.g. a rectified rig): the identity
+        return np.array(xy)
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty = d
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
@@ -80,6 +83,41 @@ def distort_normalised(xy, dist) -> np.ndarray:
         w = Tm[2, 0] * xd + Tm[2, 1] * yd + Tm[2, 2]
         xd, yd = u / w, v / w
     return np.stack([xd, yd], axis=-1)
+
+
+def distortion_jacobian(xy, dist) -> np.ndarray:
+    """d distort_normalised / d xy (..., 2, 2) at normalised coordinates ``xy`` (..., 2): analytic for the
+    radial (rational), tangential and thin-prism terms; the tilted-sensor terms (``tau_x``, ``tau_y``) are
+    differentiated by complex step (exact to rounding, two evaluations)."""
+    xy = np.asarray(xy)
+    d = _full_dist(np.asarray(dist))
+    J = np.zeros(xy.shape[:-1] + (2, 2), dtype=np.result_type(xy, float))
+    if not d.any():
+        J[..., 0, 0] = 1.0
+        J[..., 1, 1] = 1.0
+        return J
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty = d
+    if tx != 0 or ty != 0:
+        h = 1e-30
+        for j in range(2):
+            Z = xy.astype(complex)
+            Z[..., j] += 1j * h
+            J[..., :, j] = distort_normalised(Z, d).imag / h
+        return J
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    a = 1 + k1 * r2 + k2 * r4 + k3 * r4 * r2
+    b = 1 + k4 * r2 + k5 * r4 + k6 * r4 * r2
+    radial = a / b
+    dradial = ((k1 + 2 * k2 * r2 + 3 * k3 * r4) * b - a * (k4 + 2 * k5 * r2 + 3 * k6 * r4)) / (b * b)   # d/d r2
+    px = s1 + 2 * s2 * r2           # d (s1 r2 + s2 r4) / d r2
+    py = s3 + 2 * s4 * r2
+    J[..., 0, 0] = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x + 2 * x * px
+    J[..., 0, 1] = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y + 2 * y * px
+    J[..., 1, 0] = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y + 2 * x * py
+    J[..., 1, 1] = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x + 2 * y * py
+    return J
 
 
 @dataclass(frozen=True)
@@ -180,7 +218,8 @@ class Camera:
     def project_cam(self, X_cam, *, jacobian=False):
         """Pixels (N, 2) of camera-frame points (N, 3); with ``jacobian`` also d uv / d X_cam (N, 2, 3).
 
-        Points with ``z <= 0`` (behind the camera) give NaN. The Jacobian is exact (complex step).
+        Points with ``z <= 0`` (behind the camera) give NaN. The Jacobian is exact: the chain rule through the
+        pinhole division, :func:`distortion_jacobian` and K.
         """
         Xc = np.atleast_2d(np.asarray(X_cam, float))
         if Xc.shape[-1] != 3:
@@ -190,12 +229,19 @@ class Camera:
         uv[behind] = np.nan
         if not jacobian:
             return uv
-        h = 1e-30 * np.maximum(np.abs(Xc).max(axis=1), 1e-300)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iz = 1.0 / np.where(Xc[:, 2] == 0, np.nan, Xc[:, 2])
+        x, y = Xc[:, 0] * iz, Xc[:, 1] * iz
+        D = distortion_jacobian(np.stack([x, y], axis=1), self.dist)          # (N, 2, 2)
+        K = self.K
+        A = np.empty_like(D)                                                   # K[:2, :2] @ D
+        A[:, 0] = K[0, 0] * D[:, 0] + K[0, 1] * D[:, 1]
+        A[:, 1] = K[1, 1] * D[:, 1]
+        # d (x, y) / d Xc = [[1/z, 0, -x/z], [0, 1/z, -y/z]]
         J = np.empty(Xc.shape[:1] + (2, 3))
-        for j in range(3):
-            Z = Xc.astype(complex)
-            Z[:, j] += 1j * h
-            J[:, :, j] = self._pixels(Z).imag / h[:, None]
+        J[:, :, 0] = A[:, :, 0] * iz[:, None]
+        J[:, :, 1] = A[:, :, 1] * iz[:, None]
+        J[:, :, 2] = -(A[:, :, 0] * x[:, None] + A[:, :, 1] * y[:, None]) * iz[:, None]
         J[behind] = np.nan
         return uv, J
 

@@ -149,9 +149,7 @@ def _scores(backend, cameras, ref, images, origins, centre_dirs, axis_dirs, h, o
             f = 2.0 ** level
             A = ((uv[:, :, 1:, :] - uv[:, :, :1, :]) / (h * f)).astype(np.float32)   # level px per full px
             centre = ((uv[:, :, :1, :] + 0.5) / f - 0.5).astype(np.float32)          # (n, J, 1, 2), level px
-            grid = np.empty(A.shape[:2] + (len(offsets), 2), np.float32)                # (n, J, G, 2)
-            np.multiply(offsets[:, 0, None], A[:, :, None, 0, :], out=grid)
-            grid += offsets[:, 1, None] * A[:, :, None, 1, :]
+            grid = np.matmul(offsets, A)              # (G, 2) @ (n, J, 2, 2) -> (n, J, G, 2): offsets mapped by A
             grid += centre
             out[sl, :, c] = backend.patch_ncc(images[c], ref_samples[sl][:, None, :], grid)
     return out
@@ -218,33 +216,50 @@ def normal_hypotheses(axis, tilt_deg=(0.0, 30.0), per_ring=6) -> np.ndarray:
     return np.stack(out, axis=1)
 
 
-def local_planes(uv_ref, seed_uv, seed_points, origins, dirs, k=10, max_px=200.0):
+def local_planes(uv_ref, seed_uv, seed_points, origins, dirs, k=10, max_px=200.0, *, leave_self_out=False):
     """Depth (N,) and normal (N, 3) predicted for each ray from the plane through its ``k`` nearest seeds
-    (nearest in the reference image, within ``max_px``); NaN where fewer than 4 seeds are near."""
+    (nearest in the reference image, within ``max_px``); NaN where fewer than 4 seeds are near, where they are
+    collinear (second singular value of the centred seeds below 1e-6 m) or where the ray grazes the plane.
+
+    The plane is the total-least-squares fit: through the seeds' centroid, normal the eigenvector of the smallest
+    eigenvalue of their scatter matrix (the last right singular vector of the centred seeds), all rays at once.
+    With ``leave_self_out`` the rays are the seeds themselves (``uv_ref`` is ``seed_uv``) and each one's own seed
+    is left out of its plane (the leave-one-out check of :func:`match_points`)."""
     from scipy.spatial import cKDTree
 
     N = len(uv_ref)
     depth = np.full(N, np.nan)
     normal = np.full((N, 3), np.nan)
-    if len(seed_uv) < 4:
+    n_seeds = len(seed_uv) - (1 if leave_self_out else 0)
+    if n_seeds < 4 or N == 0:
         return depth, normal
+    kk = min(k, n_seeds)
     tree = cKDTree(seed_uv)
-    dist, nb = tree.query(uv_ref, k=min(k, len(seed_uv)))
-    for i in range(N):
-        nn = nb[i][dist[i] <= max_px]
-        if nn.size < 4:
-            continue
-        P = seed_points[nn]
-        c = P.mean(axis=0)
-        _, sv, vt = np.linalg.svd(P - c, full_matrices=False)
-        if sv[1] < 1e-6:               # collinear seeds: no plane
-            continue
-        n = vt[-1]
-        den = n @ dirs[i]
-        if abs(den) < 0.2:
-            continue
-        depth[i] = n @ (c - origins[i]) / den
-        normal[i] = n if den < 0 else -n   # facing the reference camera
+    dist, nb = tree.query(uv_ref, k=kk + 1 if leave_self_out else kk)
+    dist, nb = np.atleast_2d(dist).reshape(N, -1), np.atleast_2d(nb).reshape(N, -1)
+    if leave_self_out:
+        own = nb == np.arange(N)[:, None]
+        # drop each point's own index (or, if a duplicate position displaced it, the farthest neighbour)
+        drop = np.where(own.any(axis=1), np.argmax(own, axis=1), kk)
+        keep = np.ones_like(own)
+        keep[np.arange(N), drop] = False
+        dist, nb = dist[keep].reshape(N, kk), nb[keep].reshape(N, kk)
+    near = dist <= max_px                                                          # (N, kk)
+    cnt = near.sum(axis=1)
+    P = np.asarray(seed_points, float)[np.minimum(nb, len(seed_points) - 1)]      # (N, kk, 3)
+    w = near[..., None].astype(float)
+    c = (P * w).sum(axis=1) / np.maximum(cnt, 1)[:, None]
+    D = (P - c[:, None, :]) * w
+    S = np.einsum("nki,nkj->nij", D, D)
+    ev, V = np.linalg.eigh(S)                                                      # ascending eigenvalues
+    n = V[:, :, 0]
+    sv1 = np.sqrt(np.maximum(ev[:, 1], 0.0))                                       # second singular value
+    den = np.einsum("ni,ni->n", n, dirs)
+    ok = (cnt >= 4) & (sv1 >= 1e-6) & (np.abs(den) >= 0.2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        depth[ok] = np.einsum("ni,ni->n", n, c - origins)[ok] / den[ok]
+    sign = np.where(den < 0, 1.0, -1.0)                                            # facing the reference camera
+    normal[ok] = (n * sign[:, None])[ok]
     return depth, normal
 
 
@@ -252,7 +267,7 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
                  fine_step_px=0.2, fine_span_px=None, min_ncc=0.85, min_views=2, max_candidates=4000,
                  depth_range=None, tilt_deg=(0.0, 30.0), surface_passes=2, surface_span_px=(16.0, 6.0, 3.0),
                  max_seeds=48, refine_tilt_deg=(12.0, 6.0, 3.0), refine_span_px=1.0, min_ncc_two_view=0.95,
-                 max_plane_dev_m=0.003, refine_2d_px=1.0, pyramids=None,
+                 max_plane_dev_m=0.003, refine_2d_px=1.0, pyramids=None, known=None,
                  backend=None) -> MatchResult:
     """Match corners of the reference camera in every other camera by a plane sweep (module docstring).
 
@@ -296,6 +311,11 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
         Limit the search along the rays (metres from the reference camera's centre).
     pyramids : sequence of list, optional
         Precomputed ``backend.pyramid(image, coarse_level)`` per camera (None for a missing image).
+    known : (ndarray (M, 2), ndarray (M, 3)), optional
+        Surface points already measured in this instant (e.g. the tracked points): their pixels in the reference
+        camera and their 3-D positions (rig frame). They join the matched neighbours whose plane predicts each
+        corner's depth and normal in the surface passes, and a corner they predict skips the full-range seed
+        sweep (the seed sweep runs only on corners with no known surface near them).
     backend : OpenCVBackend or KorniaBackend, optional
         The image operations (heartcv.backend); default OpenCV.
 
@@ -381,20 +401,29 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
         return np.where(np.isfinite(pc[:, others]), pc[:, others], -1.0).mean(axis=1) if others else \
             np.full(len(pc), -1.0)
 
-    # 1. seed sweep on a spread subset (all points when few)
+    # 1. seed sweep on a spread subset (all points when few) of the corners no known surface point predicts
     t_fine = np.full(n, np.nan)
     per_cam = np.full((n, C), np.nan, np.float32)
     normals = np.full((n, 3), np.nan)
-    seeds = _spread_subset(uv0, max_seeds)
-    t_fine[seeds], per_cam[seeds], normals[seeds] = seed_sweep(seeds)
+    known_uv, known_X = (np.zeros((0, 2)), np.zeros((0, 3))) if known is None else \
+        (np.asarray(known[0], float).reshape(-1, 2), np.asarray(known[1], float).reshape(-1, 3))
+    keep_known = np.isfinite(known_uv).all(axis=1) & np.isfinite(known_X).all(axis=1)
+    known_uv, known_X = known_uv[keep_known], known_X[keep_known]
+    unknown = np.arange(n)
+    if len(known_X):
+        unknown = np.flatnonzero(~np.isfinite(local_planes(uv0, known_uv, known_X, o, d)[0]))
+    seeds = unknown[_spread_subset(uv0[unknown], max_seeds)] if unknown.size else unknown
+    if seeds.size:
+        t_fine[seeds], per_cam[seeds], normals[seeds] = seed_sweep(seeds)
     swept = np.zeros(n, bool)
     swept[seeds] = True
 
-    # 2. surface passes: depth and normal from the plane through the matched neighbours
+    # 2. surface passes: depth and normal from the plane through the matched neighbours (and the known points)
     for p in range(surface_passes + 1):
         good = np.isfinite(t_fine) & (np.all(per_cam[:, others] >= thr[:, None], axis=1) if others else False)
         X = o + t_fine[:, None] * d
-        t_pred, n_pred = local_planes(uv0, uv0[good], X[good], o, d)
+        t_pred, n_pred = local_planes(uv0, np.concatenate([uv0[good], known_uv]),
+                                      np.concatenate([X[good], known_X]), o, d)
         usable = np.flatnonzero(np.isfinite(t_pred))
         if usable.size:
             span_p = surface_span_px[min(p, len(surface_span_px) - 1)]
@@ -423,14 +452,18 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
             sub = np.flatnonzero(live & np.all(acc == pattern, axis=1))
             hyp = normal_hypotheses(normals[sub], (0.0, tilt))
             best = np.where(np.isfinite(per_cam[sub][:, use]), per_cam[sub][:, use], -1.0).mean(axis=1)
-            for h in range(1, hyp.shape[1]):
-                t2, pc2 = fine(sub, t_fine[sub], hyp[:, h], refine_span_px, use=use)
-                sc = np.where(np.isfinite(pc2[:, use]), pc2[:, use], -1.0).mean(axis=1)
-                better = sc > best
-                u = sub[better]
-                t_fine[u], normals[u] = t2[better], hyp[better, h]
-                per_cam[u[:, None], use] = pc2[better][:, use]
-                best[better] = sc[better]
+            # every tilted normal of every point in one sweep, each around the point's current depth
+            m, H = len(sub), hyp.shape[1] - 1
+            t2, pc2 = fine(np.repeat(sub, H), np.repeat(t_fine[sub], H), hyp[:, 1:].reshape(-1, 3),
+                           refine_span_px, use=use)
+            t2, pc2 = t2.reshape(m, H), pc2.reshape(m, H, C)
+            sc = np.where(np.isfinite(pc2[..., use]), pc2[..., use], -1.0).mean(axis=2)      # (m, H)
+            j = np.argmax(sc, axis=1)                                  # the first best, as a sequential scan
+            rr = np.arange(m)
+            better = sc[rr, j] > best
+            u, jb = sub[better], j[better]
+            t_fine[u], normals[u] = t2[better, jb], hyp[better, 1 + jb]
+            per_cam[u[:, None], use] = pc2[better, jb][:, use]
 
     # 4. verification: per-view NCC, a stricter NCC when only two views agree, and the depth must lie near the
     #    plane through the point's matched neighbours (leave-one-out), which removes gross depth errors
@@ -460,10 +493,8 @@ def match_points(cameras, images, ref, uv_ref, *, radius=7, coarse_level=2, coar
     if max_plane_dev_m is not None and good.sum() >= 5:
         dev = np.full(n, np.nan)
         gi = np.flatnonzero(good)
-        for i in gi:
-            nb = gi[gi != i]
-            tp, _ = local_planes(uv0[i:i + 1], uv0[nb], X[nb], o[i:i + 1], d[i:i + 1])
-            dev[i] = t_fine[i] - tp[0]
+        tp, _ = local_planes(uv0[gi], uv0[gi], X[gi], o[gi], d[gi], leave_self_out=True)
+        dev[gi] = t_fine[gi] - tp
         far = good & np.isfinite(dev) & (np.abs(dev) > max_plane_dev_m)
         view_ok[far] = False
 
@@ -514,8 +545,7 @@ def _refine_2d(backend, cameras, ref, c, images, origins, uv_ref, X, normals, ra
     sh = np.arange(-m, m + 1) * step
     dx, dy = np.meshgrid(sh, sh)
     shifts = np.stack([dx.ravel(), dy.ravel()], axis=1)                              # (S, 2), row-major in y
-    base = uv[:, 0, None, None, :] + (offs[None, :, 0, None] * A[:, None, 0, :]
-                                      + offs[None, :, 1, None] * A[:, None, 1, :])[:, None]   # (n, 1, G, 2)
+    base = uv[:, 0, None, None, :] + np.matmul(offs.astype(float), A)[:, None]      # (n, 1, G, 2)
     grid = (base + shifts[None, :, None, :]).astype(np.float32)                      # (n, S, G, 2)
     sc = backend.patch_ncc(images[c], ref_samples[:, None, :], grid)                 # (n, S)
     sc = np.where(np.isfinite(sc), sc, -np.inf)

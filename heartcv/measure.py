@@ -522,7 +522,11 @@ class Measurer:
             noise = [v for v in self._noise_var if v is not None]
             expected = expected_ncc(patch, max(noise) if noise else 0.0)
             min_ncc = np.maximum(o.ncc_floor, expected - o.match_ncc_allowance)
-        m = match_points(self.cameras, imgs, ref, uv, radius=o.match_radius, min_ncc=min_ncc, backend=self.backend)
+        # the points measured in this instant predict the surface around the new corners (no full-range sweep)
+        X_now = self._records[-1][1] if self._records else np.zeros((0, 3))
+        known = (self.cameras[ref].project(X_now), X_now)
+        m = match_points(self.cameras, imgs, ref, uv, radius=o.match_radius, min_ncc=min_ncc, known=known,
+                         backend=self.backend)
         keep = m.ok
         for c, cam in enumerate(self.cameras):
             inside = cam.in_image(np.nan_to_num(m.uv[:, c], nan=-1e9), o.lk.window)

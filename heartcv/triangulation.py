@@ -26,7 +26,7 @@ from heartcv.camera import Camera, Rig, invert_pose
 
 __all__ = ["Triangulation", "triangulate", "fundamental_matrix", "epipolar_distance"]
 
-_XTOL = 1e-10  # LM stops when |step| <= _XTOL * (|X| + _XTOL): sub-nanometre at the working distance
+_XTOL = 1e-9  # LM stops when |step| <= _XTOL * (|X| + _XTOL): below a nanometre within a metre of the rig
 
 
 @dataclass(frozen=True)
@@ -253,7 +253,7 @@ def triangulate(cameras, uv, *, sigma_px=0.1, refine=True, iterations=10, max_rm
        ray midpoint method, which has no such pixel weighting; a second reweighting pass changes nothing.
     2. Levenberg-Marquardt refinement (``refine=True``) of the sum of squared pixel reprojection errors
        through the full distortion model, every point's 3x3 normal equations solved together; a point stops
-       when its step falls below 1e-10 of its distance from the rig origin, or after ``iterations``.
+       when its step falls below 1e-9 of its distance from the rig origin, or after ``iterations``.
     3. Covariance ``(sum_c J_c^T J_c / sigma_px^2)^-1`` at the solution ([HZ] §5.2, result 5.10), J_c the
        exact Jacobian of camera c's projection.
     4. ``robust=True``, leave-worst-out: while a point has >= 3 used views and its worst used view

@@ -75,6 +75,33 @@ def test_match_points_recovers_the_surface_point(gentle):
     assert (m.score[:, 1:] > 0.95).all()
 
 
+def test_known_surface_points_replace_the_seed_sweep(gentle, monkeypatch):
+    """Corners near known surface points (here: other corners' true 3-D points, as the tracked points of an earlier
+    detection) skip the full-range seed sweep and are matched from the plane through the known points as well as
+    by the sweep: within 0.05 px of the truth in the other images for >= 90 % (the seed sweep's own bound); a
+    corner far from every known point is still swept."""
+    import heartcv.matching as matching
+
+    scene, images, uv, _ = gentle
+    cams = scene.cameras
+    imgs = [im.astype(np.float32) for im in images]
+    X_true = scene.surface_point(0, uv, 0)
+    half = np.arange(len(uv)) % 2 == 0             # the known points: every second corner
+    swept = []
+    real = matching._candidate_depths
+    monkeypatch.setattr(matching, "_candidate_depths", lambda *a, **k: swept.append(len(a[2])) or real(*a, **k))
+    m = match_points(cams, imgs, 0, uv[~half], known=(uv[half], X_true[half]))
+    assert swept == []                              # no seed sweep: every corner had known neighbours
+    assert m.ok.mean() >= 0.95
+    e = _px_equivalent(cams, m.points[m.ok], X_true[~half][m.ok])
+    assert np.mean(e < 0.05) >= 0.9, np.sort(e)
+    # three known points span no plane to predict from: every corner gets the seed sweep, as without them
+    m2 = match_points(cams, imgs, 0, uv[~half], known=(uv[half][:3], X_true[half][:3]))
+    assert swept and swept[0] == (~half).sum()
+    e2 = _px_equivalent(cams, m2.points[m2.ok], X_true[~half][m2.ok])
+    assert m2.ok.mean() >= 0.95 and np.mean(e2 < 0.05) >= 0.9
+
+
 def test_match_points_on_a_heart_sized_sphere_finds_the_best_plane():
     """With a 5 cm sphere the planar patch model has a known bias: the sweep finds the plane that best fits the
     patch footprint, which lies behind the tangent plane by the mean sag of the footprint (~70 um here, 0.15 px).
@@ -226,6 +253,53 @@ def test_local_planes_needs_four_near_non_collinear_seeds():
     line = lo + 0.5 * ld
     depth, _ = local_planes(uv, line_uv, line, o, d)
     assert np.isnan(depth).all()
+
+
+def _local_planes_loop(uv_ref, seed_uv, seed_points, origins, dirs, k=10, max_px=200.0):
+    """Oracle: one point at a time, a k-d tree query and an SVD of the centred neighbours per point."""
+    from scipy.spatial import cKDTree
+
+    N = len(uv_ref)
+    depth, normal = np.full(N, np.nan), np.full((N, 3), np.nan)
+    if len(seed_uv) < 4:
+        return depth, normal
+    dist, nb = cKDTree(seed_uv).query(uv_ref, k=min(k, len(seed_uv)))
+    for i in range(N):
+        nn = nb[i][dist[i] <= max_px]
+        if nn.size < 4:
+            continue
+        P = seed_points[nn]
+        c = P.mean(axis=0)
+        _, sv, vt = np.linalg.svd(P - c, full_matrices=False)
+        if sv[1] < 1e-6 or abs(vt[-1] @ dirs[i]) < 0.2:
+            continue
+        n = vt[-1] if vt[-1] @ dirs[i] < 0 else -vt[-1]
+        depth[i], normal[i] = n @ (c - origins[i]) / (n @ dirs[i]), n
+    return depth, normal
+
+
+def test_local_planes_equals_the_per_point_svd_on_a_curved_noisy_surface():
+    """The batched plane fits against a per-point SVD loop, on a curved surface with noise and holes (some rays
+    with fewer than 4 seeds within max_px), and the leave-self-out variant against the loop without the point."""
+    rng = np.random.default_rng(5)
+    cam, _, _, seed_uv, _ = _plane_setup(rng)
+    seed_uv = np.concatenate([seed_uv, rng.uniform([20, 20], [380, 280], (60, 2))])
+    o, d = cam.rays(seed_uv)
+    depth = 0.5 + 0.05 * np.sin(seed_uv[:, 0] / 40.0) + rng.normal(scale=2e-4, size=len(seed_uv))
+    seeds = o + depth[:, None] * d
+    uv = np.concatenate([rng.uniform([0, 0], [400, 300], (200, 2)), [[2000.0, 2000.0]]])
+    uo, ud = cam.rays(uv)
+    got_d, got_n = local_planes(uv, seed_uv, seeds, uo, ud, k=8, max_px=60)
+    want_d, want_n = _local_planes_loop(uv, seed_uv, seeds, uo, ud, k=8, max_px=60)
+    assert np.array_equal(np.isnan(got_d), np.isnan(want_d)) and np.isfinite(got_d).sum() > 150
+    assert np.isnan(got_d).sum() >= 1
+    assert np.nanmax(np.abs(got_d - want_d)) < 1e-9 and np.nanmax(np.abs(got_n - want_n)) < 1e-6
+    loo_d, _ = local_planes(seed_uv, seed_uv, seeds, o, d, k=8, max_px=60, leave_self_out=True)
+    for i in range(len(seed_uv)):
+        others = np.arange(len(seed_uv)) != i
+        w, _ = _local_planes_loop(seed_uv[i:i + 1], seed_uv[others], seeds[others], o[i:i + 1], d[i:i + 1], k=8,
+                                  max_px=60)
+        assert np.isnan(w[0]) == np.isnan(loo_d[i]) and (np.isnan(w[0]) or abs(w[0] - loo_d[i]) < 1e-9)
 
 
 def test_bisector_normals_and_patch_offsets(gentle):
