@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
 TORCH ?= torch==2.13.0
 
-.PHONY: test test-slow demo bench clean-venv fuzz calibrate-real measure-real
+.PHONY: test test-slow test-gpu demo bench clean-venv fuzz calibrate-real measure-real
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,6 +27,10 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow || [ $$? -eq 5 ]  # exit 5: no slow test collected yet
+
+# the kornia backend on a CUDA device (skipped, with the reason, where torch sees none)
+test-gpu: $(STAMP)
+	$(PY) -m pytest -q -rs -m cuda
 
 demo: $(STAMP)
 	$(MAKE) -C sample_sequences demo PY=$(abspath $(PY))

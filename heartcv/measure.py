@@ -340,53 +340,63 @@ class Measurer:
     def _track(self, images, spec):
         """Observations (P, C, 2) of the alive tracks in this frame (NaN where not accepted): frame-to-frame LK
         for the starting guess, then alignment to the birth template (drift-free) or, where that fails, to the
-        key template (a recent frame's appearance)."""
+        key template (a recent frame's appearance), camera by camera (:meth:`_track_camera`)."""
         C = len(self.cameras)
         P = len(self.ids)
         obs = np.full((P, C, 2), np.nan)
         self._anchored = np.zeros((P, C), bool)       # accepted against the birth template
         if P == 0:
             return obs
-        lk = self.opt.lk
         for c in range(C):
-            cur = images[c]
-            if cur is None:
+            out = None if images[c] is None else self._track_camera(c, images[c], spec[c])
+            if out is None:
                 continue
-            cand = self.alive & np.isfinite(self.birth_tmpl["uv"][:, c, 0])
-            if not cand.any():
-                continue
-            init = np.full((P, 2), np.nan)
-            prev = cand & np.isfinite(self.prev_uv[:, c, 0])
-            if prev.any() and self._prev_images[c] is not None:
-                init[prev] = flow_step(self._prev_images[c], cur, self.prev_uv[prev, c], lk)
-            gap = cand & ~np.isfinite(init[:, 0])
-            init[gap] = np.where(np.isfinite(self.carry_uv[gap, c]), self.carry_uv[gap, c],
-                                 self.cameras[c].project(self.last_X[gap]))
-            sel = np.flatnonzero(cand)
-            uv, why, _, _ = track_tiles(self._tiles(self.birth_tmpl, sel, c), cur, init[sel], lk,
-                                        ncc_floor=self.opt.ncc_floor)
-            ok = why == ACCEPTED
-            obs[sel[ok], c] = uv[ok]
-            self._anchored[sel[ok], c] = True
-            retry = ~ok & (self.key_step[sel, c] != self.birth[sel])
-            if retry.any():
-                sk = sel[retry]
-                uv2, why2, _, _ = track_tiles(self._tiles(self.key_tmpl, sk, c), cur, init[sk], lk,
-                                              ncc_floor=self.opt.ncc_floor)
-                ok2 = why2 == ACCEPTED
-                obs[sk[ok2], c] = uv2[ok2]
-                why[np.flatnonzero(retry)] = why2
-            inside = self.cameras[c].in_image(np.nan_to_num(obs[sel, c], nan=-1e9), lk.window / 2)
-            why[(why == ACCEPTED) & ~inside] = LOST
-            obs[sel[~inside], c] = np.nan
-            if spec[c] is not None:
-                hit = (why == ACCEPTED) & _mask_at(spec[c], obs[sel, c])
-                why[hit] = -1
-                obs[sel[hit], c] = np.nan
-                self.rejected["specular"] += int(hit.sum())
-            for code, name in ((LOST, "lost"), (FORWARD_BACKWARD, "forward_backward"), (PHOTOMETRIC, "photometric")):
-                self.rejected[name] += int((why == code).sum())
+            sel, uv, anchored, counts = out
+            obs[sel, c] = uv
+            self._anchored[sel, c] = anchored
+            for name, n in counts.items():
+                self.rejected[name] += n
         return obs
+
+    def _track_camera(self, c, cur, spec):
+        """:meth:`_track` in camera ``c`` (reads the tracker's state, changes nothing): (track indices (n,), their
+        positions (n, 2) (NaN where not accepted), accepted against the birth template (n,), {gate: views
+        removed}), or None without candidates."""
+        lk = self.opt.lk
+        P = len(self.ids)
+        cand = self.alive & np.isfinite(self.birth_tmpl["uv"][:, c, 0])
+        if not cand.any():
+            return None
+        init = np.full((P, 2), np.nan)
+        prev = cand & np.isfinite(self.prev_uv[:, c, 0])
+        if prev.any() and self._prev_images[c] is not None:
+            init[prev] = flow_step(self._prev_images[c], cur, self.prev_uv[prev, c], lk)
+        gap = cand & ~np.isfinite(init[:, 0])
+        init[gap] = np.where(np.isfinite(self.carry_uv[gap, c]), self.carry_uv[gap, c],
+                             self.cameras[c].project(self.last_X[gap]))
+        sel = np.flatnonzero(cand)
+        uv, why, _, _ = track_tiles(self._tiles(self.birth_tmpl, sel, c), cur, init[sel], lk,
+                                    ncc_floor=self.opt.ncc_floor)
+        anchored = why == ACCEPTED
+        retry = ~anchored & (self.key_step[sel, c] != self.birth[sel])
+        if retry.any():
+            sk = sel[retry]
+            uv2, why2, _, _ = track_tiles(self._tiles(self.key_tmpl, sk, c), cur, init[sk], lk,
+                                          ncc_floor=self.opt.ncc_floor)
+            r = np.flatnonzero(retry)
+            uv[r], why[r] = uv2, why2
+        inside = self.cameras[c].in_image(np.nan_to_num(uv, nan=-1e9), lk.window / 2)
+        why[(why == ACCEPTED) & ~inside] = LOST
+        uv[~inside] = np.nan
+        counts = {}
+        if spec is not None:
+            hit = (why == ACCEPTED) & _mask_at(spec, uv)
+            why[hit] = -1
+            uv[hit] = np.nan
+            counts["specular"] = int(hit.sum())
+        for code, name in ((LOST, "lost"), (FORWARD_BACKWARD, "forward_backward"), (PHOTOMETRIC, "photometric")):
+            counts[name] = int((why == code).sum())
+        return sel, uv, anchored & np.isfinite(uv[:, 0]), counts
 
     def _depth_ok(self, X, cov) -> np.ndarray:
         """The depth-uncertainty gate: the standard deviation of each point's depth along the reference camera's

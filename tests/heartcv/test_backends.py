@@ -31,15 +31,18 @@ def test_get_backend_names():
 
 
 # -- fixtures -------------------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def kb():
+@pytest.fixture(scope="module", params=["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def kb(request):
     """The kornia backend on the CPU, with one torch thread while this module runs: on a busy 2-core machine
-    torch's intra-op threads wait on each other (9x slower matching), like BLAS's (tests/conftest.py)."""
+    torch's intra-op threads wait on each other (9x slower matching), like BLAS's (tests/conftest.py); and on a
+    CUDA device (marker ``cuda``: deselected by default, ``make test-gpu`` runs them where a GPU is present)."""
     torch = pytest.importorskip("torch")
     pytest.importorskip("kornia")
+    if request.param == "cuda" and not torch.cuda.is_available():
+        pytest.skip("no CUDA device (torch.cuda.is_available() is False)")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    yield get_backend("kornia", "cpu")
+    yield get_backend("kornia", request.param)
     torch.set_num_threads(threads)
 
 
@@ -75,7 +78,7 @@ def image(request, rng):
 
 # -- op by op -------------------------------------------------------------------------------------------------------
 def test_kornia_backend_identity(kb):
-    assert kb.name == "kornia" and str(kb.device) == "cpu"
+    assert kb.name == "kornia" and kb.device.type in ("cpu", "cuda")
     assert get_backend("kornia").device.type in ("cpu", "cuda")
     from heartcv.tracker.files import InputError
 
