@@ -191,17 +191,18 @@ def track_tiles(templates: TileSet, cur_gray, uv_init, params: LKParams, *, ncc_
     Each point's template tile and a tile of the current image around its starting guess are packed into two
     mosaics (:func:`_mosaic`); pyramidal LK (``params.refine_levels`` levels) aligns each template to its current
     tile, and LK back from the result to the template gives the forward–backward error (Kalal et al., ICPR
-    2010). A point is accepted when LK converged inside its tile (``LOST`` otherwise), the forward–backward error
-    is at most ``params.fb_max_px`` (``FORWARD_BACKWARD``), and the NCC of its template patch with the patch at
-    the result is at least ``max(ncc_floor, expected - ncc_allowance)`` with ``expected`` the NCC that image
-    noise alone leaves (:func:`expected_ncc`; ``PHOTOMETRIC``); without ``ncc_allowance`` the fixed
-    ``params.min_ncc``.
+    2010). The gates, in this order (a point's ``reason`` is the first it fails): ``LOST`` unless LK converged
+    inside its tile; ``PHOTOMETRIC`` unless the NCC of its template patch with the patch at the result is at least
+    ``max(ncc_floor, expected - ncc_allowance)``, ``expected`` the NCC that image noise alone leaves
+    (:func:`expected_ncc`; without ``ncc_allowance`` the fixed ``params.min_ncc``); ``FORWARD_BACKWARD`` unless the
+    LK back converged within ``params.fb_max_px`` of the template position. The LK back runs only on the points
+    that passed the first two gates (LK treats every point on its own, so this changes no decision).
 
     Returns
     -------
     uv : ndarray (N, 2)       tracked positions (NaN where not accepted)
-    reason : ndarray (N,) int ``ACCEPTED`` (0), ``LOST``, ``FORWARD_BACKWARD`` or ``PHOTOMETRIC``
-    fb_px : ndarray (N,)      forward-backward error
+    reason : ndarray (N,) int ``ACCEPTED`` (0), ``LOST``, ``PHOTOMETRIC`` or ``FORWARD_BACKWARD``
+    fb_px : ndarray (N,)      forward-backward error (NaN where the LK back did not run)
     score : ndarray (N,)      NCC of template and tracked patch
     """
     import cv2
@@ -223,11 +224,8 @@ def track_tiles(templates: TileSet, cur_gray, uv_init, params: LKParams, *, ncc_
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon_px)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(A, B, p0, p1.copy(), winSize=win, maxLevel=params.refine_levels,
                                          criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(B, A, p1, p0.copy(), winSize=win, maxLevel=params.refine_levels,
-                                            criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     local = p1.reshape(-1, 2).astype(float) - pos
     uv = local + cur_origin
-    fb = np.linalg.norm(back.reshape(-1, 2).astype(float) - p0.reshape(-1, 2), axis=1)
     margin = params.window / 2
     inside = np.isfinite(local).all(axis=1) & (local >= margin).all(axis=1) & (local <= S - 1 - margin).all(axis=1)
     cur = sample_patches(np.asarray(cur_gray, np.float32), uv, patch_offsets(params.ncc_radius))
@@ -237,9 +235,17 @@ def track_tiles(templates: TileSet, cur_gray, uv_init, params: LKParams, *, ncc_
     else:
         gate = np.maximum(ncc_floor, templates.expected - params.ncc_allowance)
     reason = np.full(N, ACCEPTED, np.int64)
-    reason[score < gate] = PHOTOMETRIC
-    reason[~(fb <= params.fb_max_px)] = FORWARD_BACKWARD
-    reason[(st.ravel() != 1) | (st2.ravel() != 1) | ~inside | ~np.isfinite(score)] = LOST
+    reason[(st.ravel() != 1) | ~inside | ~np.isfinite(score)] = LOST
+    reason[(reason == ACCEPTED) & (score < gate)] = PHOTOMETRIC
+    fb = np.full(N, np.nan)
+    back_of = np.flatnonzero(reason == ACCEPTED)
+    if back_of.size:
+        q0, q1 = p0[back_of], p1[back_of]
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(B, A, q1, q0.copy(), winSize=win, maxLevel=params.refine_levels,
+                                                criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        fb[back_of] = np.linalg.norm(back.reshape(-1, 2).astype(float) - q0.reshape(-1, 2), axis=1)
+        fb[back_of[st2.ravel() != 1]] = np.nan
+    reason[(reason == ACCEPTED) & ~(fb <= params.fb_max_px)] = FORWARD_BACKWARD
     uv[reason != ACCEPTED] = np.nan
     return uv, reason, fb, score
 

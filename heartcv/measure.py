@@ -59,7 +59,7 @@ from .tissue import TissueNotFound, neutral_mask, noise_sigma, specular_mask, ti
 from .tracker.files import InputError
 from .triangulation import triangulate
 
-__all__ = ["MeasureOptions", "MeasureResult", "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
+__all__ = ["MeasureOptions", "MeasureResult", "Highlights", "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
            "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
            "assemble_result"]
 
@@ -150,7 +150,55 @@ class MeasureOptions:
 
 #: The gates that remove candidates (``Measurer.rejected``; docs/cli.md, measure): per view and frame for the
 #: tracking gates, per point and frame for the triangulation gates, per new corner for the matching gate.
-GATES = ("lost", "forward_backward", "photometric", "specular", "reprojection", "depth_uncertainty", "match")
+GATES = ("lost", "photometric", "forward_backward", "specular", "reprojection", "depth_uncertainty", "match")
+
+
+class Highlights:
+    """One frame's specular highlights (bool (H, W), before growing) and the radius ``grow`` (px) they are grown by
+    (dilation by the ellipse of :func:`heartcv.tissue.specular_mask`). :meth:`at` reads the grown mask at a few
+    points without growing the whole frame (tracking needs only that); :meth:`grown` grows it (re-detection)."""
+
+    def __init__(self, raw, grow: int):
+        self.raw = np.ascontiguousarray(np.asarray(raw, bool))
+        self.grow = int(grow)
+        self._grown = None
+        self._any = bool(self.raw.any())
+
+    def grown(self) -> np.ndarray:
+        """The grown mask, bool (H, W) (``cv2.dilate`` by the ellipse of side ``2 grow + 1``)."""
+        if self._grown is None:
+            if self.grow > 0 and self._any:
+                import cv2
+
+                k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * self.grow + 1, 2 * self.grow + 1))
+                self._grown = cv2.dilate(self.raw.view(np.uint8), k).view(bool)
+            else:
+                self._grown = self.raw
+        return self._grown
+
+    def at(self, uv) -> np.ndarray:
+        """Whether each position (N, 2) falls on the grown mask (nearest pixel; False outside the image or NaN):
+        any highlight pixel under the ellipse centred on that pixel, which is what the dilation computes there."""
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        if not self._any:
+            return np.zeros(len(uv), bool)
+        if self._grown is not None or self.grow <= 0:
+            return _mask_at(self.grown(), uv)
+        import cv2
+
+        H, W = self.raw.shape
+        g = self.grow
+        finite = np.isfinite(uv).all(axis=1)
+        r = np.rint(np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)).astype(np.int64)
+        inside = finite & (r[:, 0] >= 0) & (r[:, 0] < W) & (r[:, 1] >= 0) & (r[:, 1] < H)
+        out = np.zeros(len(uv), bool)
+        if inside.any():
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1)).astype(bool)
+            padded = cv2.copyMakeBorder(self.raw.view(np.uint8), g, g, g, g, cv2.BORDER_CONSTANT, value=0)
+            windows = np.lib.stride_tricks.sliding_window_view(padded, (2 * g + 1, 2 * g + 1))
+            ri = r[inside]
+            out[inside] = (windows[ri[:, 1], ri[:, 0]].view(bool) & k).any(axis=(1, 2))
+        return out
 
 
 @dataclass(frozen=True)
@@ -310,7 +358,7 @@ class Measurer:
         self._expire(s)
         return seen
 
-    def _highlights(self, image):
+    def _highlights(self, image) -> "Highlights | None":
         """This frame's specular highlights (grown by the NCC patch radius), or None: near-white blobs of a colour
         frame (:func:`heartcv.tissue.specular_mask`); in a gray frame bright tissue cannot be told from a highlight,
         so only clipped pixels (``saturation_level``) count."""
@@ -318,8 +366,10 @@ class Measurer:
             return None
         grow = self.opt.lk.ncc_radius
         if image.ndim == 3:
-            return specular_mask(image, grow_px=grow)
-        return saturation_mask(image, self.opt.saturation_level, grow=grow)
+            raw = specular_mask(image, grow_px=0)
+        else:
+            raw = saturation_mask(image, self.opt.saturation_level, grow=0)
+        return Highlights(raw, grow)
 
     def _prefilter(self, gray):
         """The image the tracker sees: the gray image, or its high-pass ``128 + 2 (g - blur(g))`` with
@@ -390,11 +440,11 @@ class Measurer:
         uv[~inside] = np.nan
         counts = {}
         if spec is not None:
-            hit = (why == ACCEPTED) & _mask_at(spec, uv)
+            hit = (why == ACCEPTED) & spec.at(uv)
             why[hit] = -1
             uv[hit] = np.nan
             counts["specular"] = int(hit.sum())
-        for code, name in ((LOST, "lost"), (FORWARD_BACKWARD, "forward_backward"), (PHOTOMETRIC, "photometric")):
+        for code, name in ((LOST, "lost"), (PHOTOMETRIC, "photometric"), (FORWARD_BACKWARD, "forward_backward")):
             counts[name] = int((why == code).sum())
         return sel, uv, anchored & np.isfinite(uv[:, 0]), counts
 
@@ -513,7 +563,7 @@ class Measurer:
         gray = images[ref]
         mask = self.roi & ~saturation_mask(gray, o.saturation_level, grow=o.lk.window // 2)
         if spec[ref] is not None:
-            mask &= ~spec[ref]
+            mask &= ~spec[ref].grown()
         if colour is not None and colour.ndim == 3:
             neutral = neutral_mask(colour, self.roi, grow_px=o.lk.window // 2)
             if neutral is not None:
@@ -541,7 +591,7 @@ class Measurer:
         for c, cam in enumerate(self.cameras):
             inside = cam.in_image(np.nan_to_num(m.uv[:, c], nan=-1e9), o.lk.window)
             if spec[c] is not None:
-                inside &= ~_mask_at(spec[c], m.uv[:, c])
+                inside &= ~spec[c].at(m.uv[:, c])
             m.uv[~inside, c] = np.nan
         keep &= np.isfinite(m.uv[..., 0]).sum(axis=1) >= 2
         self.rejected["match"] += int((~keep).sum())
@@ -844,7 +894,7 @@ def _mask_at(mask, uv) -> np.ndarray:
     """Whether each position (N, 2) falls on a True pixel of ``mask`` (nearest pixel; False outside or NaN)."""
     H, W = mask.shape
     finite = np.isfinite(uv).all(axis=1)
-    r = np.rint(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)
+    r = np.rint(np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)).astype(np.int64)
     inside = finite & (r[:, 0] >= 0) & (r[:, 0] < W) & (r[:, 1] >= 0) & (r[:, 1] < H)
     out = np.zeros(len(uv), bool)
     out[inside] = mask[r[inside, 1], r[inside, 0]]

@@ -117,6 +117,70 @@ def test_track_tiles_rejects_with_the_reason():
     assert (why != ACCEPTED).all()
 
 
+def _track_tiles_all_back(templates, cur_gray, uv_init, params, ncc_floor=0.5):
+    """Oracle: the tile tracker with the LK back run on every point (the whole mosaic), the gates applied after."""
+    import cv2
+
+    from heartcv.features import ncc, sample_patches
+    from heartcv.klt import _mosaic
+    from heartcv.matching import patch_offsets
+
+    half = params.tile_half
+    S = 2 * half + 1
+    init = np.where(np.isfinite(uv_init), uv_init, templates.uv)
+    cur_tiles, cur_origin = cut_tiles(cur_gray, init, half)
+    A, pos = _mosaic(templates.tiles)
+    B, _ = _mosaic(cur_tiles)
+    p0 = (pos + templates.uv - templates.origin).astype(np.float32).reshape(-1, 1, 2)
+    p1 = (pos + init - cur_origin).astype(np.float32).reshape(-1, 1, 2)
+    win = (params.window, params.window)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon_px)
+    flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(A, B, p0, p1.copy(), winSize=win, maxLevel=params.refine_levels,
+                                         criteria=crit, flags=flags)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(B, A, p1, p0.copy(), winSize=win, maxLevel=params.refine_levels,
+                                            criteria=crit, flags=flags)
+    local = p1.reshape(-1, 2).astype(float) - pos
+    uv = local + cur_origin
+    fb = np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
+    m = params.window / 2
+    inside = (local >= m).all(axis=1) & (local <= S - 1 - m).all(axis=1)
+    score = np.nan_to_num(ncc(templates.patch, sample_patches(cur_gray.astype(np.float32), uv,
+                                                              patch_offsets(params.ncc_radius))), nan=-1.0)
+    gate = np.maximum(ncc_floor, templates.expected - params.ncc_allowance)
+    lost = (st.ravel() != 1) | ~inside
+    photo = ~lost & (score < gate)
+    fbad = ~lost & ~photo & ((st2.ravel() != 1) | ~(fb <= params.fb_max_px))
+    return uv, lost, photo, fbad
+
+
+def test_track_tiles_gate_order_changes_no_decision():
+    """The LK back runs only on the points that passed ``lost`` and ``photometric``: on a scene with occluders,
+    foreign texture, a flat patch and far starting guesses, every point gets the reason and position of the oracle
+    that runs it on all points, and each gate removes some point."""
+    rng = np.random.default_rng(11)
+    lk = LKParams(window=11, ncc_radius=4, fb_max_px=0.5, ncc_allowance=0.25)
+    img = _texture(seed=7)
+    a = img.round().astype(np.uint8)
+    b = _shift(img, 0.7, -0.4)
+    uv = np.stack([rng.uniform(40, 280, 120), rng.uniform(40, 200, 120)], axis=1)
+    for k in range(0, 120, 6):                       # flat occluders and foreign texture over some points
+        x, y = np.rint(uv[k]).astype(int)
+        b[y - 8:y + 9, x - 8:x + 9] = 128 if k % 12 else _texture((17, 17), seed=k).astype(np.uint8)
+    init = uv + [0.7, -0.4]
+    init[1::7] += rng.uniform(-6, 6, (len(init[1::7]), 2))        # poor starting guesses
+    init[3::11] += 60.0                                           # beyond the tile
+    tiles = _tiles(a, uv, lk, noise_var=4.0)
+    got, why, fb, _ = track_tiles(tiles, b, init, lk)
+    uv_o, lost, photo, fbad = _track_tiles_all_back(tiles, b, init, lk)
+    assert np.array_equal(why == LOST, lost) and np.array_equal(why == PHOTOMETRIC, photo)
+    assert np.array_equal(why == FORWARD_BACKWARD, fbad)
+    ok = why == ACCEPTED
+    assert np.array_equal(got[ok], uv_o[ok]) and np.isnan(got[~ok]).all()
+    assert lost.any() and photo.any() and fbad.any() and ok.sum() >= 60
+    assert np.isnan(fb[lost | photo]).all() and np.isfinite(fb[ok]).all()
+
+
 def test_noise_adaptive_gate_follows_the_expected_ncc():
     """A fixed shift with a photometric change: accepted while NCC >= expected - allowance, rejected with a smaller
     allowance; the fixed gate (allowance None) uses min_ncc."""

@@ -93,3 +93,35 @@ def test_rig_in_millimetres_is_refused():
     with pytest.raises(InputError, match=r"cam0 and cam1 are 5.5 m apart.*millimetres") as exc:
         check_rig_scale(mm, "rig.yaml")
     assert exc.value.field == "cam_from_rig" and MAX_BASELINE_M == 1.0
+
+
+def test_highlights_at_points_equal_the_dilated_mask():
+    """Highlights.at (the ellipse under each point, without dilating the frame) against cv2.dilate of the whole
+    mask read at the points: random sparse blobs, some on the image border, points everywhere (borders, outside,
+    NaN); and grown() equals specular_mask's own dilation."""
+    import cv2
+
+    from heartcv.measure import Highlights, _mask_at
+    from heartcv.tissue import specular_mask
+
+    rng = np.random.default_rng(3)
+    H, W = 90, 130
+    raw = np.zeros((H, W), bool)
+    raw[rng.integers(0, H, 40), rng.integers(0, W, 40)] = True
+    raw[0, 5] = raw[H - 1, W - 1] = raw[40, 0] = True
+    uv = np.concatenate([rng.uniform(-3, [W + 2, H + 2], (3000, 2)), [[np.nan, 4.0], [2.0, np.inf]]])
+    for g in (0, 1, 4, 7):
+        hl = Highlights(raw, g)
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))
+        want = _mask_at(cv2.dilate(raw.astype(np.uint8), k).astype(bool) if g else raw, uv)
+        got = hl.at(uv)
+        assert np.array_equal(got, want) and want.sum() > (5 if g == 0 else 50) and (~want).sum() > 50
+        assert np.array_equal(hl.grown(), cv2.dilate(raw.astype(np.uint8), k).astype(bool) if g else raw)
+        assert np.array_equal(hl.at(uv), want)                  # also once the grown mask is cached
+    assert not Highlights(np.zeros((H, W), bool), 5).at(uv).any()
+    # a real colour frame: the grown mask is specular_mask's own dilation
+    frame = np.full((120, 160, 3), (60, 70, 170), np.uint8)
+    frame[50:53, 80:84] = 255
+    frame[10, 10] = 255
+    hl = Highlights(specular_mask(frame, grow_px=0), 4)
+    assert np.array_equal(hl.grown(), specular_mask(frame, grow_px=4)) and hl.grown().sum() > 12
