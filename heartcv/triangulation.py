@@ -171,10 +171,11 @@ def _cost(r, depth, used):
     return np.where(np.all(~used | (depth > 0), axis=1), cost, np.inf)
 
 
-def _refine(cams, X, uv, seen, used, iterations):
+def _refine(cams, X, uv, seen, used, iterations, fixed=None):
     """Levenberg-Marquardt ([HZ] §A6) on the pixel reprojection error, one 3x3 system per point, all points
     at once; a point leaves the loop when its step is below ``_XTOL`` relative. Points whose start is behind
-    a used camera are left unrefined. Returns X and ``_evaluate`` over the seen views at X."""
+    a used camera, and the rows ``fixed`` (already optimal), are left unrefined. Returns X and ``_evaluate`` over
+    the seen views at X."""
     X = X.copy()
     finite = np.isfinite(X).all(axis=1)
     mask = seen & finite[:, None]
@@ -182,7 +183,7 @@ def _refine(cams, X, uv, seen, used, iterations):
     if not iterations:
         return X, r, J, depth
     cost = _cost(r, depth, used)
-    idx = np.flatnonzero(finite & np.isfinite(cost))
+    idx = np.flatnonzero(finite & np.isfinite(cost) & (True if fixed is None else ~fixed))
     lam = np.full(idx.size, 1e-6)
     for _ in range(iterations):
         if idx.size == 0:
@@ -206,9 +207,56 @@ def _refine(cams, X, uv, seen, used, iterations):
 
 
 def _solve(cams, uv, xy, seen, used, refine, iterations):
-    X = _linear(cams, xy, used)
+    exact = _rectified_optimum(cams, uv, used) if refine else None
+    X = np.full((len(uv), 3), np.nan)
+    rest = np.ones(len(uv), bool)
+    if exact is not None:
+        rows, X_exact = exact
+        X[rows] = X_exact
+        rest[rows] = False
+    if rest.any():
+        X[rest] = _linear(cams, xy[rest], used[rest])
     X[used.sum(axis=1) < 2] = np.nan
-    return _refine(cams, X, uv, seen, used, iterations if refine else 0)
+    return _refine(cams, X, uv, seen, used, iterations if refine else 0, fixed=~rest)
+
+
+def _rectified_pair(cams):
+    """(i, j, baseline) when cameras i and j form a rectified pair -- no distortion, the same K with zero skew,
+    the same orientation and camera j displaced along camera i's x axis by ``baseline`` > 0 (m), to 1e-12 --
+    else None."""
+    for i in range(len(cams)):
+        for j in range(len(cams)):
+            a, b = cams[i], cams[j]
+            if i == j or a.dist.any() or b.dist.any() or a.K[0, 1] != 0 or not np.array_equal(a.K, b.K):
+                continue
+            if np.abs(b.R @ a.R.T - np.eye(3)).max() > 1e-12:
+                continue
+            d = a.to_cam(b.centre)                       # camera j's centre in camera i's frame
+            scale = max(np.linalg.norm(d), 1e-300)
+            if d[0] > 0 and abs(d[1]) <= 1e-12 * scale and abs(d[2]) <= 1e-12 * scale:
+                return i, j, float(d[0])
+    return None
+
+
+def _rectified_optimum(cams, uv, used):
+    """(rows, X (n, 3)) for the points seen in exactly the two views of a rectified pair (:func:`_rectified_pair`):
+    the exact minimiser of their pixel reprojection error, in closed form. The three free values of a point are
+    its two columns and its common row, so both observations keep their columns and move to the mean of their rows
+    (any other split costs more): ``X = b / d (u_i - cx, (v_i + v_j) / 2 - cy, f)`` in camera i's frame, d = u_i -
+    u_j the disparity. Points with d <= 0 (at or beyond infinity) are left to the general path. None without a
+    rectified pair."""
+    pair = _rectified_pair(cams)
+    if pair is None:
+        return None
+    i, j, b = pair
+    only = used[:, i] & used[:, j] & (used.sum(axis=1) == 2)
+    d = uv[:, i, 0] - uv[:, j, 0]
+    rows = np.flatnonzero(only & (d > 0))
+    K = cams[i].K
+    z = K[0, 0] * b / d[rows]
+    v = 0.5 * (uv[rows, i, 1] + uv[rows, j, 1])
+    Xc = np.stack([(uv[rows, i, 0] - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
+    return rows, (Xc - cams[i].t) @ cams[i].R                  # rig frame: R^T (Xc - t)
 
 
 def _ray_angles(cams, xy, used) -> np.ndarray:

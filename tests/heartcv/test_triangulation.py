@@ -160,6 +160,44 @@ def test_against_scipy_least_squares(rng, no_warnings):
         assert tri.rms_px[i] == pytest.approx(np.sqrt((fun(ref) ** 2).sum() / len(views)), rel=1e-6)
 
 
+def test_rectified_pair_closed_form_is_the_least_squares_optimum(rng, no_warnings):
+    """A rectified stereo pair (as `heartcv rig rectified` writes: same K, no distortion, partner along x), posed
+    anywhere in the rig frame: the closed-form optimum equals scipy's LM minimiser of the reprojection error to
+    1e-12 m and the general path (linear + LM, the closed form switched off) to 1e-12 m; rows differing by the
+    noise; points seen in one view or at negative disparity go the general way (NaN / not ok, as before)."""
+    import heartcv.triangulation as T
+
+    K = np.array([[390.0, 0.0, 179.5], [0.0, 390.0, 143.5], [0.0, 0.0, 1.0]])
+    R = cv2.Rodrigues(np.array([0.2, -0.1, 0.3]))[0]
+    t = np.array([0.01, -0.02, 0.005])
+    left = Camera("cam0", 360, 288, K, np.zeros(5), pose_matrix(R, t))
+    right = Camera("cam1", 360, 288, K, np.zeros(5), pose_matrix(R, t - [0.0055, 0.0, 0.0]))
+    assert T._rectified_pair([left, right]) == (0, 1, pytest.approx(0.0055))
+    assert T._rectified_pair([left, left.with_pose(pose_matrix(R, t - [0.0, 0.0055, 0.0]))]) is None
+    Xc = np.c_[rng.uniform(-0.01, 0.01, (40, 2)), rng.uniform(0.02, 0.05, 40)]
+    X = (Xc - t) @ R
+    uv = np.stack([left.project(X), right.project(X)], axis=1) + 0.4 * rng.standard_normal((40, 2, 2))
+    uv[0, 1] = np.nan                                               # one view only
+    uv[1, 1, 0] = uv[1, 0, 0] + 2.0                                 # negative disparity
+    tri = triangulate([left, right], uv)
+    real = T._rectified_pair
+    T._rectified_pair = lambda cams: None
+    try:
+        general = triangulate([left, right], uv)
+    finally:
+        T._rectified_pair = real
+    assert np.array_equal(tri.ok, general.ok) and not tri.ok[:2].any() and tri.ok[2:].all()
+    np.testing.assert_allclose(tri.points[2:], general.points[2:], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tri.covariances[2:], general.covariances[2:], rtol=1e-9, atol=0)
+    for i in range(2, 12):
+        fun = lambda p: np.concatenate([left.project(p[None])[0] - uv[i, 0], right.project(p[None])[0] - uv[i, 1]])  # noqa: E731,B023
+        ref = least_squares(fun, X[i], method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+        assert np.abs(tri.points[i] - ref).max() < 1e-12
+        # the residuals: columns kept, rows split equally
+        r = fun(tri.points[i]).reshape(2, 2)
+        assert np.abs(r[:, 0]).max() < 1e-9 and abs(r[0, 1] + r[1, 1]) < 1e-9
+
+
 def test_refinement_lowers_reprojection_error(rng, no_warnings):
     cams, c0 = paper_rig(dist=np.array([-0.3, 0.5, 1e-3, -1e-3, 0.0]))  # strong distortion
     X = heart_points(c0, rng, 200) * [4, 4, 1]  # spread to the image corners
