@@ -19,8 +19,8 @@ import numpy as np
 from .features import ncc, sample_patches
 from .matching import patch_offsets
 
-__all__ = ["LKParams", "template_patches", "track_from_template", "TileSet", "cut_tiles", "track_tiles", "flow_step",
-           "expected_ncc", "LOST", "FORWARD_BACKWARD", "PHOTOMETRIC"]
+__all__ = ["LKParams", "template_patches", "track_from_template", "TileSet", "cut_tiles", "tile_mosaics", "track_tiles",
+           "flow_step", "expected_ncc", "LOST", "FORWARD_BACKWARD", "PHOTOMETRIC"]
 
 # why a view was not accepted (the ``reason`` codes of :func:`track_tiles`)
 ACCEPTED, LOST, FORWARD_BACKWARD, PHOTOMETRIC = 0, 1, 2, 3
@@ -185,6 +185,20 @@ def _mosaic(tiles) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(img), np.stack([(k % cols) * S, (k // cols) * S], axis=1).astype(np.float64)
 
 
+def tile_mosaics(templates: TileSet, cur_gray, uv_init, half):
+    """The two mosaics of :func:`track_tiles`: the template tiles (A) and the tiles of ``cur_gray`` around the
+    starting guesses (B; the template position where a guess is NaN), each tile's top-left position in them (N, 2),
+    the current tiles' image origins (N, 2), and the points' positions in A (template) and B (guess) as LK takes
+    them (float32 (N, 1, 2))."""
+    init = np.where(np.isfinite(uv_init), uv_init, templates.uv)
+    cur_tiles, cur_origin = cut_tiles(cur_gray, init, half)
+    A, pos = _mosaic(templates.tiles)
+    B, _ = _mosaic(cur_tiles)
+    p0 = (pos + templates.uv - templates.origin).astype(np.float32).reshape(-1, 1, 2)
+    p1 = (pos + init - cur_origin).astype(np.float32).reshape(-1, 1, 2)
+    return A, B, pos, cur_origin, p0, p1
+
+
 def track_tiles(templates: TileSet, cur_gray, uv_init, params: LKParams, *, ncc_floor: float = 0.5):
     """Track points from their own template tiles into the current image, all in one Lucas–Kanade call.
 
@@ -214,12 +228,7 @@ def track_tiles(templates: TileSet, cur_gray, uv_init, params: LKParams, *, ncc_
     S = 2 * half + 1
     if templates.tiles.shape[1] != S:
         raise ValueError(f"templates: tiles of side {S} expected, got {templates.tiles.shape[1]}")
-    init = np.where(np.isfinite(uv_init), uv_init, templates.uv)
-    cur_tiles, cur_origin = cut_tiles(cur_gray, init, half)
-    A, pos = _mosaic(templates.tiles)
-    B, _ = _mosaic(cur_tiles)
-    p0 = (pos + templates.uv - templates.origin).astype(np.float32).reshape(-1, 1, 2)
-    p1 = (pos + init - cur_origin).astype(np.float32).reshape(-1, 1, 2)
+    A, B, pos, cur_origin, p0, p1 = tile_mosaics(templates, cur_gray, uv_init, half)
     win = (params.window, params.window)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon_px)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(A, B, p0, p1.copy(), winSize=win, maxLevel=params.refine_levels,

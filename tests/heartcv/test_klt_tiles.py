@@ -122,17 +122,11 @@ def _track_tiles_all_back(templates, cur_gray, uv_init, params, ncc_floor=0.5):
     import cv2
 
     from heartcv.features import ncc, sample_patches
-    from heartcv.klt import _mosaic
+    from heartcv.klt import tile_mosaics
     from heartcv.matching import patch_offsets
 
-    half = params.tile_half
-    S = 2 * half + 1
-    init = np.where(np.isfinite(uv_init), uv_init, templates.uv)
-    cur_tiles, cur_origin = cut_tiles(cur_gray, init, half)
-    A, pos = _mosaic(templates.tiles)
-    B, _ = _mosaic(cur_tiles)
-    p0 = (pos + templates.uv - templates.origin).astype(np.float32).reshape(-1, 1, 2)
-    p1 = (pos + init - cur_origin).astype(np.float32).reshape(-1, 1, 2)
+    S = 2 * params.tile_half + 1
+    A, B, pos, cur_origin, p0, p1 = tile_mosaics(templates, cur_gray, uv_init, params.tile_half)
     win = (params.window, params.window)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon_px)
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW
