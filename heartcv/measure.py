@@ -186,11 +186,8 @@ class Highlights:
             return _mask_at(self.grown(), uv)
         import cv2
 
-        H, W = self.raw.shape
         g = self.grow
-        finite = np.isfinite(uv).all(axis=1)
-        r = np.rint(np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)).astype(np.int64)
-        inside = finite & (r[:, 0] >= 0) & (r[:, 0] < W) & (r[:, 1] >= 0) & (r[:, 1] < H)
+        r, inside = _nearest_pixels(uv, self.raw.shape)
         out = np.zeros(len(uv), bool)
         if inside.any():
             k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1)).astype(bool)
@@ -890,12 +887,18 @@ def _gray(image) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
 
 
-def _mask_at(mask, uv) -> np.ndarray:
-    """Whether each position (N, 2) falls on a True pixel of ``mask`` (nearest pixel; False outside or NaN)."""
-    H, W = mask.shape
+def _nearest_pixels(uv, shape):
+    """The nearest pixel (N, 2) int of each position (N, 2) and whether it lies in an image of ``shape`` (N,)
+    (False for NaN or infinite positions)."""
+    H, W = shape[:2]
     finite = np.isfinite(uv).all(axis=1)
     r = np.rint(np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)).astype(np.int64)
-    inside = finite & (r[:, 0] >= 0) & (r[:, 0] < W) & (r[:, 1] >= 0) & (r[:, 1] < H)
+    return r, finite & (r[:, 0] >= 0) & (r[:, 0] < W) & (r[:, 1] >= 0) & (r[:, 1] < H)
+
+
+def _mask_at(mask, uv) -> np.ndarray:
+    """Whether each position (N, 2) falls on a True pixel of ``mask`` (nearest pixel; False outside or NaN)."""
+    r, inside = _nearest_pixels(uv, mask.shape)
     out = np.zeros(len(uv), bool)
     out[inside] = mask[r[inside, 1], r[inside, 0]]
     return out
