@@ -310,7 +310,8 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
     estimators = {}
     for label, r in runs.items():
         est, m = r["est"], compared["per_run"][label]
-        d = {k: m[k] for k in PER_ESTIMATOR_KEYS + ("theta_truth_final",)}
+        d = {k: m[k] for k in PER_ESTIMATOR_KEYS + ("theta_truth_final", "theta_truth_correlation",
+                                                         "theta_truth_coverage_2sigma")}
         d.update(estimator=est.estimator, file=str(r["path"]), steps=int(est.times.size), partial=not est.complete,
                  estimated=list(est.meta.get("estimated", [])))
         estimators[label] = d

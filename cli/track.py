@@ -8,15 +8,17 @@ import sys
 
 import click
 
-from .options import BadInput, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model
+from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model
 
 log = logging.getLogger(__name__)
 
-ESTIMATORS = ("kf", "ge", "ukf", "ekf")
+from heartcv.tracker.estimator_names import NAMES as ESTIMATORS  # noqa: E402  (the one registry of names)
 ESTIMATOR_HELP = ("kf: Kalman filter with the model file's parameters held fixed; ge: Rao-Blackwellised Gaussian "
                   "estimator of state and parameters (the paper's); ukf / ekf: joint unscented / extended Kalman "
                   "filters on the augmented state (baselines). See docs/estimators.md.")
 MAX_NODES = 51  # as estimation.ge.nodes of the model file
+FIT_REFERENCES = "undeformed: heartcv fit"
+ADAPT_WINDOW_S = 0.03  # as tracker.adaptive.AdaptationOptions.window_s  # meta.reference of a set whose references are the fit's offsets
 
 
 def partial_path(output) -> Path:
@@ -46,10 +48,22 @@ def _odd_nodes(ctx, param, value):
               help="Parameters file of heartcv fit: its theta replaces the model file's parameters (kf: held at "
                    "them; ge/ukf/ekf: the prior mean, with the fit's standard deviation unless the model file's "
                    "prior is tighter); its registration is applied to rig-frame measurements.")
+@click.option("--references", type=click.Choice(("auto", "fixed", "estimate")), default="auto", show_default=True,
+              help="The points' undeformed reference positions: 'estimate' carries a correction of them as static "
+                   "states of the model (docs/estimators.md 3.7); 'fixed' takes them as exact; 'auto' estimates "
+                   "them when they are the fit's offsets (measured points with --params) and fixes them otherwise "
+                   "(model simulate's exact references).")
+@click.option("--adapt/--no-adapt", default=True, show_default=True,
+              help="Choose the noise levels from the innovations while running (docs/estimators.md 3.8): the scale "
+                   "of the measurement covariances (the part of a point's error that changes from frame to frame) "
+                   "and, for ge/ukf/ekf, the parameters' random walk (never below the model file's).")
+@click.option("--adapt-window", type=Float(1e-3, 60.0), default=ADAPT_WINDOW_S, show_default=True,
+              help="Memory of the adaptation in seconds.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
-def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, output, as_json):
+def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
+          adapt_window, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -85,8 +99,11 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         if estimator != "kf":
             theta0, prior_std, meta["prior_source"] = _prior(m, fitted, params_file)
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
+    if references == "auto":
+        references = "estimate" if str(meas.meta.get("reference", "")).startswith(FIT_REFERENCES) else "fixed"
     try:
-        est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity)
+        est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
+                   _adaptation(adapt, adapt_window))
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -163,7 +180,13 @@ def _prior(m, fitted, params_file):
         raise exc.in_file(params_file) from None
 
 
-def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity):
+def _adaptation(adapt, window):
+    from heartcv.tracker.adaptive import AdaptationOptions
+
+    return AdaptationOptions(window_s=window) if adapt else None
+
+
+def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation):
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker.joint import run_joint
@@ -171,11 +194,13 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
 
     with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
         if estimator == "kf":
-            return run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph)
+            return run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph,
+                              references=references, adaptation=adaptation)
         with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
                 if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
             return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
-                             progress=lambda done, total: bar.update(1))
+                             progress=lambda done, total: bar.update(1), references=references,
+                             adaptation=adaptation)
 
 
 def _diverged(exc, estimator, meas, meta, part, output) -> str:
@@ -212,6 +237,8 @@ def _report(est, estimator, output, as_json) -> None:
         "theta_std_final": dict(zip(NAMES, map(float, est.theta_std[-1]), strict=True)),
         "truncation_events": int(est.truncation_events.sum()),
         "estimated": list(est.meta.get("estimated", [])),
+        "references": est.meta.get("references", "fixed"),
+        "adaptation": est.meta.get("adaptation"),
         "output": output,
     }
     if as_json:

@@ -143,10 +143,14 @@ class ModelConfig:
                 out.append(DEFAULT_PRIOR_STD[name])
         return np.array(out, float)
 
-    def random_walk_std_phi(self) -> np.ndarray:
-        """Random-walk standard deviation per frame of the estimated parameters in phi units (dim,)."""
+    def random_walk_std_phi(self, dt: float | None = None) -> np.ndarray:
+        """Random-walk standard deviation of the estimated parameters in phi units (dim,), per frame of ``dt``
+        seconds: the model file gives it per frame at its ``frame_rate``, i.e. a rate per second of
+        ``std * sqrt(frame_rate)``, so that a sequence at another frame rate gets the same change per second
+        (``std * sqrt(dt * frame_rate)``). ``dt`` None: per frame at the model file's rate."""
         space = self.parameter_space()
-        return np.array([self.estimation.random_walk_std.get(n, 0.0) for n in space.estimated], float)
+        sd = np.array([self.estimation.random_walk_std.get(n, 0.0) for n in space.estimated], float)
+        return sd if dt is None else sd * np.sqrt(float(dt) * self.frame_rate)
 
     @property
     def input_names(self) -> tuple:

@@ -489,10 +489,19 @@ def tracking_prior(cfg, fitted: FitResult):
     """Prior of the joint estimators started from a fit (``heartcv track --params``).
 
     The fitted theta (all five) replaces the model file's values as the prior mean. The prior standard deviation
-    of each parameter the tracker estimates is the fit's, ``theta_std / (d theta / d phi)`` at the fitted theta in
-    the tracker's phi, when the fit estimated that parameter and has a covariance, unless the model file's prior
-    (``prior_std`` / ``prior_std_si``) is tighter; otherwise the model file's. Correlations of the fit are not
-    carried over (the joint prior is diagonal in phi).
+    of each parameter the tracker estimates:
+
+    * a **static** parameter (no random walk in the model file): the fit's, ``theta_std / (d theta / d phi)`` at
+      the fitted theta in the tracker's phi, when the fit estimated that parameter and has a covariance, unless the
+      model file's prior (``prior_std`` / ``prior_std_si``) is tighter; otherwise the model file's. The fitted
+      constant is then the parameter itself.
+    * a **time-varying** parameter (``random_walk_std > 0``): the model file's. The fit's standard deviation is
+      the uncertainty of the constant that best explains the fitted window, not of the parameter in the first
+      frame, which for a stiffness that follows the heartbeat may lie anywhere in the cycle's range; taken as
+      the prior it would make the reference states (:mod:`tracker.reference`) lock onto the constant's
+      references in the first beat (docs/estimators.md 3.7).
+
+    Correlations of the fit are not carried over (the joint prior is diagonal in phi).
 
     Returns
     -------
@@ -508,6 +517,7 @@ def tracking_prior(cfg, fitted: FitResult):
     """
     space = cfg.parameter_space()
     model_sd = cfg.prior_std_phi()
+    walk = cfg.random_walk_std_phi()
     theta0 = np.array(fitted.theta, float)
     for i in range(len(NAMES)):
         if not space.lower[i] <= theta0[i] <= space.upper[i]:
@@ -521,7 +531,7 @@ def tracking_prior(cfg, fitted: FitResult):
     for j, name in enumerate(space.estimated):
         i = NAMES.index(name)
         fit_sd = fitted.theta_std[i] / jac[i] if (has_cov and name in fitted.estimated) else np.inf
-        if 0 < fit_sd < model_sd[j]:
+        if walk[j] == 0 and 0 < fit_sd < model_sd[j]:
             sd[j] = fit_sd
             source[name] = "fit"
         else:

@@ -196,7 +196,7 @@ _EST_SCHEMA = {
     "phi_cov": ArraySpec("f", ("K", "M", "M"), finite="nan", required=False, max_abs=1e6),
     "filtered": ArraySpec("f", ("K", "P", 3), finite="nan", required=False, max_abs=L_MAX),
 }
-ESTIMATORS = ("kf", "ge", "ukf", "ekf")
+from .estimators import NAMES as ESTIMATORS  # noqa: E402  (the registry of estimator names)
 
 
 def write_estimates(path, e: EstimateSet, meta: dict | None = None):

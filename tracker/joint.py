@@ -2,8 +2,10 @@
 
 The joint state is ``z = [x_n; x_l]``: ``x_n`` the estimated parameters in the estimator's coordinates
 ``phi`` (:mod:`tracker.params`; log for rho, alpha1, alpha2, E and ``s = log(lambda/mu)`` for nu), ``x_l`` the
-kinematic state of the patch model. Per frame k (docs/spec/estimator.md; the same cycle as the KF of
-:mod:`tracker.tracking`):
+kinematic state of the patch model (and the static reference states of :mod:`tracker.reference` when they are
+estimated). The three are variants of one predict/update shape (:mod:`tracker.estimators`): they override the
+prediction only, and share the frame loop :func:`tracker.estimators.run_filter` with the KF. Per frame k
+(docs/spec/estimator.md):
 
 1. ``k > 0``: predict with the estimator's rule (GE §2, UKF or EKF §5), first-order-hold input ``u_{k-1}, u_k``;
    then truncate the parameter block to the box (§3; GE by default, optional for the baselines);
@@ -19,27 +21,27 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import logging
-import time
 from typing import Callable
 
 import numpy as np
-import scipy.linalg as sla
 
+from .estimators import JOINT, Estimator, register, run_filter, variant
 from .ge import conditional_split, ge_predict, ge_predict_family
-from .kalman import GaussianState, cholesky_psd, symmetrise, update
+from .kalman import GaussianState, cholesky_psd, symmetrise
 from .measurements import EstimateSet, MeasurementSet
 from .model import PatchModel
 from .params import NAMES, ParameterSpace
 from .sampling import sample
-from .tracking import EstimationDiverged, ObservedPoints, _block_diag_R, run_setup
+from .tracking import ObservedPoints, check_references, run_setup
 from .transition import TransitionFamily
 from .truncation import SKIP_SIGMA, truncate_box
 
-__all__ = ["JointOptions", "JointPrior", "joint_prior", "run_joint", "ESTIMATORS", "JointFilter"]
+__all__ = ["JointOptions", "JointPrior", "joint_prior", "run_joint", "ESTIMATORS", "JointFilter", "GEFilter",
+           "UKFFilter", "EKFFilter", "make_filter"]
 
 log = logging.getLogger(__name__)
 
-ESTIMATORS = ("ge", "ukf", "ekf")
+ESTIMATORS = JOINT
 
 
 @dataclass(frozen=True)
@@ -101,7 +103,7 @@ class JointPrior:
     Q_l: np.ndarray  # (n_l, n_l)
 
 
-def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None) -> JointPrior:
+def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, dt=None) -> JointPrior:
     """Prior of the joint state: ``x_n ~ N(phi(theta0), diag(prior_std^2))`` and the kinematic state at the
     equilibrium of the (uncertain) parameters, ``x_l = x_static(phi) + e``, ``e ~ N(0, C_l0)``, linearised at
     ``phi0``: mean ``x_static(phi0)``, ``C_ln = J C_nn``, ``C_ll = C_l0 + J C_nn J^T`` with
@@ -113,6 +115,11 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None) -> JointPrio
         Initial parameter estimate in SI (default: the model file's theta). Must lie inside the box.
     prior_std : (M,), optional
         Prior standard deviation of the estimated parameters in phi units (default: the model file's).
+    block : tracker.reference.ReferenceBlock, optional
+        Static reference states appended to the kinematic state (uncorrelated with the rest in the prior).
+    dt : float, optional
+        Frame interval of the sequence: the random walk ``Q_n`` is the model file's per frame of ``dt``
+        (:meth:`tracker.config.ModelConfig.random_walk_std_phi`); None: per frame at the model file's rate.
     """
     cfg = model.config
     space = cfg.parameter_space()
@@ -145,29 +152,48 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None) -> JointPrio
     C[M:, :M] = J @ C_nn
     C[:M, M:] = C[M:, :M].T
     C[M:, M:] = model.initial_covariance() + J @ C_nn @ J.T
-    Q_n = np.diag(cfg.random_walk_std_phi() ** 2)
+    Q_n = np.diag(cfg.random_walk_std_phi(dt) ** 2)
     Q_l = model.process_noise(theta0)
+    if block is not None:
+        x_l, C_l = block.prior(x_l, C[M:, M:])
+        C_full = np.zeros((M + x_l.size, M + x_l.size))
+        C_full[:M + n_l, :M + n_l] = C
+        C_full[M:, M:] = C_l
+        C = C_full
+        Q_l = block.noise(Q_l)
     return JointPrior(GaussianState(np.concatenate([x_n, x_l]), C), space, Q_n, Q_l)
 
 
-class JointFilter:
-    """One joint estimator bound to a model, a parameter space and a frame interval.
+class JointFilter(Estimator):
+    """The joint estimators' shared part (:class:`tracker.estimators.Estimator` hooks): a model, a parameter space
+    and a frame interval; the transition of the linear block for many theta; the box truncation. The variants
+    (:class:`GEFilter`, :class:`UKFFilter`, :class:`EKFFilter`) override :meth:`_predict` only.
 
-    ``predict(state, u0, u1)`` returns ``(state, info)``; the update is :func:`tracker.kalman.update` on
-    ``H_z = [0, H]``. ``info`` counts clipped sample coordinates and eigen-decompositions.
+    ``predict(state, u0, u1, Q_n=None)`` returns ``(state, info)``; ``info`` counts clipped sample coordinates,
+    samples and jitter events. ``Q_l`` may be larger than the model's kinematic state: the extra states are static
+    (the reference block of :mod:`tracker.reference`, transition identity).
     """
+
+    def __new__(cls, name=None, *args, **kwargs):
+        # JointFilter('ge', ...) builds the registered variant (the name selects the class, nothing else does)
+        if cls is JointFilter:
+            if name not in JOINT:
+                raise ValueError(f"estimator: one of {JOINT} expected, got {name!r}")
+            cls = variant(name)
+        return super().__new__(cls)
 
     def __init__(self, name: str, model: PatchModel, space: ParameterSpace, dt: float, Q_n, Q_l,
                  options: JointOptions = JointOptions()):
-        if name not in ESTIMATORS:
-            raise ValueError(f"estimator: one of {ESTIMATORS} expected, got {name!r}")
-        self.name = name
+        if name != self.name:
+            raise ValueError(f"estimator: {self.name!r} expected by {type(self).__name__}, got {name!r}")
         self.model = model
         self.space = space
         self.M = space.dim
         self.dt = float(dt)
         self.Q_n = np.asarray(Q_n, float)
         self.Q_l = np.asarray(Q_l, float)
+        self.n_x = model.state_dim
+        self.static = max(self.Q_l.shape[0] - self.n_x, 0)    # static states after the kinematic ones
         self.options = options
         self.modal = model.config.method == "modal" and not options.dense
         self.family = TransitionFamily(model, dt) if self.modal else None
@@ -179,33 +205,80 @@ class JointFilter:
             else np.arange(self.M)
         self.inv_perm = np.argsort(self.perm)
 
+    @property
+    def truncation_method(self) -> str:
+        """The box truncation after predictions and updates: the baselines' (``baseline_truncation``)."""
+        return self.options.baseline_truncation
+
+    # -- truncation (spec §3) ---------------------------------------------------------------------------
+    def truncate(self, state: GaussianState):
+        method = self.truncation_method
+        if method == "none":
+            return state, 0, 0
+        # every constraint inactive (the skip test of truncate_box, which then returns its input): skip the call
+        sd = np.sqrt(np.diag(state.cov)[:self.M])
+        mu = state.mean[:self.M]
+        if ((self.lower - mu < -SKIP_SIGMA * sd) & (self.upper - mu > SKIP_SIGMA * sd)).all():
+            return state, 0, 0
+        res = truncate_box(state.mean, symmetrise(state.cov), self.lower, self.upper, self.M, method=method)
+        if res.events == 0:
+            return state, 0, 0
+        return GaussianState(res.mean, res.cov), res.events, res.low_mass
+
     # -- transitions -------------------------------------------------------------------------------
     def propagate(self, thetas, X, u0, u1) -> np.ndarray:
         """``A(theta_i) x_i + B0 u0 + B1 u1`` for rows of thetas (L, 5) and X (L, n_l)."""
         if self.modal:
             return self.family.propagate(thetas, X, u0, u1)
-        out = np.empty_like(X)
+        n = self.n_x
+        out = np.array(X, float, copy=True)
         for i, (th, x) in enumerate(zip(thetas, X)):
             s = self.model.system(th, self.dt)
-            out[i] = s.A @ x + s.B0 @ u0 + s.B1 @ u1
+            out[i, :n] = s.A @ x[:n] + s.B0 @ u0 + s.B1 @ u1
         return out
 
+    def dense_transition(self, theta, u0, u1):
+        """``(A, b)`` of one theta as dense arrays, static states included (``blkdiag(A(theta), I)``)."""
+        from .reference import augment_transition
+
+        s = self.model.system(theta, self.dt)
+        return augment_transition(s.A, s.B0 @ u0 + s.B1 @ u1, self.static)
+
     def sandwich(self, theta, C) -> np.ndarray:
-        """``A(theta) C A(theta)^T``."""
+        """``A(theta) C A(theta)^T`` (static states included)."""
         if self.modal:
             return self.family.weighted_sandwich(np.asarray(theta)[None], np.ones(1), C)
-        A = self.model.system(theta, self.dt).A
+        z = np.zeros(self.model.loads.shape[1])
+        A, _ = self.dense_transition(theta, z, z)
         return A @ C @ A.T
 
-    def predict(self, state: GaussianState, u0, u1):
-        if self.name == "ge":
-            return self._predict_ge(state, u0, u1)
-        if self.name == "ukf":
-            return self._predict_ukf(state, u0, u1)
-        return self._predict_ekf(state, u0, u1)
+    def predict(self, state: GaussianState, u0, u1, Q_n=None):
+        """One-frame prediction of the joint state with the random walk ``Q_n`` (default: the filter's)."""
+        return self._predict(state, u0, u1, self.Q_n if Q_n is None else np.asarray(Q_n, float))
 
-    # -- GE (spec §2) --------------------------------------------------------------------------------
-    def _predict_ge(self, state, u0, u1):
+    def _predict(self, state, u0, u1, Q_n):
+        raise NotImplementedError
+
+    def constrain(self, state):
+        return self.truncate(state)
+
+    def parameters(self, state):
+        return _theta_and_std(self.space, state.mean[:self.M], state.cov[:self.M, :self.M])
+
+    def meta(self):
+        return {"counters": {"eig": self.family.eig_count if self.family else 0}, "modal_path": self.modal}
+
+
+@register("ge")
+class GEFilter(JointFilter):
+    """The GE (spec §2): deterministic Dirac-mixture samples of the parameter block, exact conditional
+    propagation of the linear block per sample."""
+
+    @property
+    def truncation_method(self) -> str:
+        return self.options.truncation
+
+    def _predict(self, state, u0, u1, Q_n):
         o = self.options
         M, p = self.M, self.perm
         mu_n, C_nn = state.mean[:M], symmetrise(state.cov[:M, :M])
@@ -215,22 +288,25 @@ class JointFilter:
         thetas = self.space.theta_from_x(nodes)
         split = conditional_split(state, M, factor=not self.modal)
         if self.modal:
-            pred = ge_predict_family(state, M, nodes, ss.weights, thetas, self.family, u0, u1, self.Q_n, self.Q_l,
+            pred = ge_predict_family(state, M, nodes, ss.weights, thetas, self.family, u0, u1, Q_n, self.Q_l,
                                      split=split)
         else:
             def transition(_nodes):
                 A = np.empty((len(thetas), self.Q_l.shape[0], self.Q_l.shape[0]))
                 b = np.empty((len(thetas), self.Q_l.shape[0]))
                 for i, th in enumerate(thetas):
-                    s = self.model.system(th, self.dt)
-                    A[i] = s.A
-                    b[i] = s.B0 @ u0 + s.B1 @ u1
+                    A[i], b[i] = self.dense_transition(th, u0, u1)
                 return A, b
-            pred = ge_predict(state, M, nodes, ss.weights, transition, self.Q_n, self.Q_l, split=split)
+            pred = ge_predict(state, M, nodes, ss.weights, transition, Q_n, self.Q_l, split=split)
         return pred, {"clipped": ss.clipped, "samples": ss.L, "jitter": split.jitter_events}
 
-    # -- joint UKF (spec §5 b) -------------------------------------------------------------------------
-    def _predict_ukf(self, state, u0, u1):
+
+
+@register("ukf")
+class UKFFilter(JointFilter):
+    """Joint UKF (spec §5 b): the scaled unscented transform of the whole joint state."""
+
+    def _predict(self, state, u0, u1, Q_n):
         o = self.options
         M = self.M
         n = state.mean.size
@@ -257,12 +333,17 @@ class JointFilter:
         mean = wm @ Y
         d = Y - mean
         cov = (d * wc[:, None]).T @ d
-        cov[:M, :M] += self.Q_n
+        cov[:M, :M] += Q_n
         cov[M:, M:] += self.Q_l
         return GaussianState(mean, symmetrise(cov)), {"clipped": clipped, "samples": 2 * n + 1, "jitter": jitter}
 
-    # -- joint EKF (spec §5 c) -------------------------------------------------------------------------
-    def _predict_ekf(self, state, u0, u1):
+
+
+@register("ekf")
+class EKFFilter(JointFilter):
+    """Joint EKF (spec §5 c): linearised in phi by central differences."""
+
+    def _predict(self, state, u0, u1, Q_n):
         M = self.M
         mu, C = state.mean, symmetrise(state.cov)
         mu_n, mu_l = mu[:M], mu[M:]
@@ -277,46 +358,12 @@ class JointFilter:
         AC_ln = self.propagate(np.broadcast_to(th0, (M, 5)), C_nl, zero, zero).T  # A C_ln (n_l, M)
         cross = AC_ln @ J.T
         out = np.empty_like(C)
-        out[:M, :M] = C_nn + self.Q_n
+        out[:M, :M] = C_nn + Q_n
         out[M:, :M] = J @ C_nn + AC_ln
         out[:M, M:] = out[M:, :M].T
         out[M:, M:] = self.sandwich(th0, C_ll) + cross + cross.T + J @ C_nn @ J.T + self.Q_l
         return GaussianState(np.concatenate([mu_n, F[0]]), symmetrise(out)), {"clipped": 0, "samples": 2 * M + 1,
                                                                               "jitter": 0}
-
-    # -- truncation (spec §3) ---------------------------------------------------------------------------
-    def truncate(self, state: GaussianState):
-        method = self.options.truncation if self.name == "ge" else self.options.baseline_truncation
-        if method == "none":
-            return state, 0, 0
-        # every constraint inactive (the skip test of truncate_box, which then returns its input): skip the call
-        sd = np.sqrt(np.diag(state.cov)[:self.M])
-        mu = state.mean[:self.M]
-        if ((self.lower - mu < -SKIP_SIGMA * sd) & (self.upper - mu > SKIP_SIGMA * sd)).all():
-            return state, 0, 0
-        res = truncate_box(state.mean, symmetrise(state.cov), self.lower, self.upper, self.M, method=method)
-        if res.events == 0:
-            return state, 0, 0
-        return GaussianState(res.mean, res.cov), res.events, res.low_mass
-
-
-class _Runaway(FloatingPointError):
-    pass
-
-
-# A state beyond these is a diverged filter, not an estimate: stop before it reaches the model (e.g. a Poisson
-# ratio that rounds to exactly 0 or 0.5, or displacements of kilometres).
-RUNAWAY_PHI = 1e3   # |phi| (log-parameters: a factor e^1000)
-RUNAWAY_STATE = 1e3  # |x_l| (m, m/s)
-
-
-def _check_runaway(state: GaussianState, M: int, where: str):
-    mu, C = state.mean, state.cov
-    if not (np.isfinite(mu).all() and np.isfinite(C).all()):
-        raise _Runaway(f"non-finite {where}")
-    if np.abs(mu[:M]).max(initial=0) > RUNAWAY_PHI or np.abs(mu[M:]).max(initial=0) > RUNAWAY_STATE:
-        raise _Runaway(f"runaway {where}: |phi| up to {np.abs(mu[:M]).max(initial=0):.3g}, "
-                       f"|x_l| up to {np.abs(mu[M:]).max(initial=0):.3g}")
 
 
 def _theta_and_std(space: ParameterSpace, mean_n, cov_nn):
@@ -330,7 +377,8 @@ def _theta_and_std(space: ParameterSpace, mean_n, cov_nn):
 
 def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *, theta0=None, prior_std=None,
               options: JointOptions | None = None, points: ObservedPoints | None = None,
-              progress: Callable[[int, int], None] | None = None) -> EstimateSet:
+              progress: Callable[[int, int], None] | None = None, references: str = "fixed",
+              adaptation=None) -> EstimateSet:
     """Run the GE, the joint UKF or the joint EKF over a measurement set.
 
     Parameters
@@ -343,6 +391,12 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     options : JointOptions, optional
         Default: :meth:`JointOptions.from_config` of the model file.
     progress : callable(done, total), optional
+    references : {'fixed', 'estimate'}
+        ``estimate``: the static reference states of :mod:`tracker.reference` join the kinematic state (their
+        means and variances are in ``state_mean`` / ``state_var`` after the model's ``2 r`` columns).
+    adaptation : tracker.adaptive.AdaptationOptions, optional
+        Estimate the parameters' random walk and the model error added to R from the innovations
+        (:mod:`tracker.adaptive`); None keeps the model file's random walk and the measurement covariances.
 
     Returns
     -------
@@ -359,83 +413,28 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: one of {ESTIMATORS} expected, got {estimator!r}")
+    from .reference import augment_observation, reference_block
+
+    check_references(references)
     options = options or JointOptions.from_config(model.config)
     pts, obs, u, trans, K, dt = run_setup(model, meas, points)
-    prior = joint_prior(model, u[0], theta0, prior_std)
+    block = None
+    if references == "estimate":
+        block = reference_block(model, model.config.theta if theta0 is None else theta0, u)
+        obs = augment_observation(obs, block)
+    prior = joint_prior(model, u[0], theta0, prior_std, block, dt)
     space = prior.space
     M = space.dim
     filt = JointFilter(estimator, model, space, dt, prior.Q_n, prior.Q_l, options)
-    n_l = model.state_dim
-    Hz = np.hstack([np.zeros((obs.H.shape[0], M)), obs.H])
-    y_all = meas.positions[:, pts.keep, :].reshape(K, -1)
-    cov_all = meas.covariances[:, pts.keep]
-    P_all = meas.n_points
+    meta = {"dropped_points": pts.dropped.tolist(), "joseph": options.joseph, "dt": dt,
+            "estimated": list(space.estimated), "theta0": space.theta.tolist(),
+            "prior_std_phi": np.sqrt(np.diag(prior.state.cov[:M, :M])).tolist(),
+            "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
+            "references": references, "reference_states": 0 if block is None else block.size}
+    adapt = None
+    if adaptation is not None:
+        from .adaptive import NoiseAdaptation
 
-    state_mean = np.full((K, n_l), np.nan)
-    state_var = np.full((K, n_l), np.nan)
-    theta = np.full((K, 5), np.nan)
-    theta_std = np.full((K, 5), np.nan)
-    phi_mean = np.full((K, M), np.nan)
-    phi_cov = np.full((K, M, M), np.nan)
-    predictions = np.full((K, P_all, 3), np.nan)
-    filtered = np.full((K, P_all, 3), np.nan)
-    innovations = np.full((K, P_all, 3), np.nan)
-    nis = np.full(K, np.nan)
-    dof = np.zeros(K, np.int64)
-    trunc = np.zeros(K, np.int64)
-    step_time = np.zeros(K)
-    counters = {"clipped": 0, "low_mass": 0, "jitter": 0, "eig": 0}
-
-    def result(done):
-        return EstimateSet(
-            estimator, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std, predictions,
-            innovations, nis, dof, trunc, step_time, done,
-            meta={"dropped_points": pts.dropped.tolist(), "joseph": options.joseph, "dt": dt,
-                  "estimated": list(space.estimated), "theta0": space.theta.tolist(),
-                  "prior_std_phi": np.sqrt(np.diag(prior.state.cov[:M, :M])).tolist(),
-                  "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
-                  "counters": dict(counters, eig=filt.family.eig_count if filt.family else 0),
-                  "modal_path": filt.modal},
-            phi_mean=phi_mean, phi_cov=phi_cov, filtered=filtered,
-        )
-
-    state = prior.state
-    for k in range(K):
-        t0 = time.perf_counter()
-        events = 0
-        try:
-            if k > 0:
-                state, info = filt.predict(state, u[k - 1], u[k])
-                counters["clipped"] += info["clipped"]
-                counters["jitter"] += info["jitter"]
-                _check_runaway(state, M, "prediction")
-                state, ev, low = filt.truncate(state)
-                events += ev
-                counters["low_mass"] += low
-            offset = (obs.reference + trans[k]).reshape(-1)
-            pred_y = offset + obs.H @ state.mean[M:]
-            res = update(state, y_all[k], Hz, _block_diag_R(cov_all[k]), offset, joseph=options.joseph)
-            state = res.state
-            counters["jitter"] += res.jitter_events
-            _check_runaway(state, M, "update")
-            state, ev, low = filt.truncate(state)
-            events += ev
-            counters["low_mass"] += low
-        except (_Runaway, FloatingPointError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
-            log.error("%s: the estimate diverged at step %d (%s)", estimator, k, exc)
-            raise EstimationDiverged(k, result(k)) from None
-        step_time[k] = time.perf_counter() - t0
-        predictions[k, pts.keep] = pred_y.reshape(-1, 3)
-        filtered[k, pts.keep] = (offset + obs.H @ state.mean[M:]).reshape(-1, 3)
-        innovations[k, pts.keep] = (y_all[k] - pred_y).reshape(-1, 3)
-        state_mean[k] = state.mean[M:]
-        state_var[k] = np.diag(state.cov)[M:]
-        phi_mean[k] = state.mean[:M]
-        phi_cov[k] = state.cov[:M, :M]
-        theta[k], theta_std[k] = _theta_and_std(space, state.mean[:M], state.cov[:M, :M])
-        nis[k] = res.nis
-        dof[k] = res.dof
-        trunc[k] = events
-        if progress is not None:
-            progress(k + 1, K)
-    return result(K)
+        adapt = NoiseAdaptation(M, dt, prior.Q_n, adaptation)
+    return run_filter(filt, meas, prior.state, obs.H, obs.reference, pts.keep, u, trans, prior.Q_n,
+                      joseph=options.joseph, progress=progress, meta=meta, adapt=adapt)

@@ -48,6 +48,7 @@ __all__ = [
     "sequence_mismatch",
     "estimator_metrics",
     "compare_runs",
+    "theta_truth_agreement",
     "truth_in_patch_frame",
     "pose_magnitude",
 ]
@@ -343,6 +344,47 @@ def _ratio(a, b) -> float | None:
     return float(a / b)
 
 
+def theta_truth_agreement(theta, theta_std, truth_theta, estimated, *, first: int = 1) -> dict:
+    """How well estimated parameter trajectories follow the true ones (issue 15).
+
+    For each name in ``estimated`` (the parameters the run estimated), over the steps ``first .. K-1`` where both
+    the estimate and the truth are finite (step 0 is the prior's):
+
+    * ``correlation``: the Pearson correlation of the estimate with the truth over time; ``None`` where either
+      trajectory is constant (a KF's theta, a constant-stiffness truth): a correlation is then undefined;
+    * ``coverage_2sigma``: the fraction of those steps with ``|theta_k - truth_k| <= 2 theta_std_k`` (the truth
+      inside the estimate's +-2 sigma band; 0.954 expected of a consistent Gaussian estimate).
+
+    Parameters
+    ----------
+    theta, theta_std : ndarray (K, 5)        the run's parameters and their std (SI)
+    truth_theta : ndarray (K_t, 5)           true parameters per step (the first ``min(K, K_t)`` steps are used)
+    estimated : sequence of str              names in :data:`tracker.params.NAMES`
+
+    Returns
+    -------
+    dict ``{"correlation": {name: float | None}, "coverage_2sigma": {name: float | None}}``
+    """
+    theta = np.asarray(theta, float)
+    sd = np.asarray(theta_std, float)
+    truth = np.asarray(truth_theta, float)
+    K = min(len(theta), len(truth))
+    corr, cover = {}, {}
+    for name in estimated:
+        i = NAMES.index(name)
+        a, b, s = theta[first:K, i], truth[first:K, i], sd[first:K, i]
+        ok = np.isfinite(a) & np.isfinite(b) & np.isfinite(s)
+        if not ok.any():
+            corr[name] = cover[name] = None
+            continue
+        a, b, s = a[ok], b[ok], s[ok]
+        scale = max(np.abs(b).max(), np.abs(a).max(), 1e-300)
+        flat = np.ptp(a) <= 1e-12 * scale or np.ptp(b) <= 1e-12 * scale
+        corr[name] = None if flat or a.size < 3 else float(np.corrcoef(a, b)[0, 1])
+        cover[name] = float(np.mean(np.abs(a - b) <= 2.0 * s))
+    return {"correlation": corr, "coverage_2sigma": cover}
+
+
 def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=None, level: float = 0.95) -> dict:
     """The metrics of several runs over one sequence (the numbers of ``heartcv report``'s metrics.json).
 
@@ -363,7 +405,8 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         ``per_run``: label -> :func:`estimator_metrics` plus ``measurement_truth_error_mean_m`` (the
         measurements' own truth error over the observations k >= 1, :func:`measurement_truth_error_norms`; NaN
         without truth) and ``theta_truth_final`` (the truth's theta at the run's last completed step, by name;
-        None without a truth of that length); ``sequence``: ``frames``, ``duration_s``, ``points``, ``dt_s``
+        None without a truth of that length), ``theta_truth_correlation`` and ``theta_truth_coverage_2sigma``
+        (by estimated parameter, :func:`theta_truth_agreement`; None without a truth); ``sequence``: ``frames``, ``duration_s``, ``points``, ``dt_s``
         (median frame interval, None for one frame) and ``mixed`` (some run is of another sequence,
         :func:`sequence_mismatch`); ``measurement_truth_error_mean_m`` (of the first run that has one, else
         None); ``ratio_ge_to_kf_prediction_error`` and ``ratio_ge_to_kf_truth_error`` (runs labelled ``ge`` and
@@ -379,6 +422,11 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         c = completed(est)
         m["theta_truth_final"] = (dict(zip(NAMES, map(float, np.asarray(truth_theta, float)[c - 1]), strict=True))
                                   if truth_theta is not None and 0 < c <= len(truth_theta) else None)
+        agree = (theta_truth_agreement(np.asarray(est.theta)[:c], np.asarray(est.theta_std)[:c], truth_theta,
+                                       est.meta.get("estimated") or [])
+                 if truth_theta is not None and c > 1 else {"correlation": None, "coverage_2sigma": None})
+        m["theta_truth_correlation"] = agree["correlation"]
+        m["theta_truth_coverage_2sigma"] = agree["coverage_2sigma"]
         per[label] = m
     first = next(iter(runs.values()))
     t = np.asarray(first.times, float)

@@ -32,7 +32,8 @@ import numpy as np
 from scipy import stats
 
 from .files import InputError
-from .joint import ESTIMATORS as JOINT_ESTIMATORS
+from .estimators import JOINT as JOINT_ESTIMATORS
+from .estimators import NAMES as ESTIMATORS
 from .joint import run_joint
 from .model import PatchModel
 from .params import NAMES
@@ -45,7 +46,6 @@ __all__ = ["ESTIMATORS", "MAX_PRIOR_TRIES", "EstimatorRuns", "RunResult", "Study
 
 log = logging.getLogger(__name__)
 
-ESTIMATORS = JOINT_ESTIMATORS + ("kf",)
 MAX_PRIOR_TRIES = 1000
 
 

@@ -10,16 +10,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import logging
-import time
 
 import numpy as np
 
 from .files import InputError
-from .kalman import GaussianState, predict, update
+from .estimators import Estimator, register, run_filter
+from .kalman import GaussianState, predict
 from .measurements import EstimateSet, MeasurementSet
 from .model import Observation, PatchModel
 
-__all__ = ["ObservedPoints", "locate_points", "run_kalman", "EstimationDiverged"]
+__all__ = ["ObservedPoints", "locate_points", "run_kalman", "EstimationDiverged", "check_references", "KalmanFilter"]
 
 log = logging.getLogger(__name__)
 
@@ -100,16 +100,6 @@ def frame_interval(model: PatchModel, meas: MeasurementSet) -> float:
     return dt
 
 
-def _block_diag_R(cov_k: np.ndarray) -> np.ndarray:
-    """Block-diagonal R (3P, 3P) of per-point covariances (P, 3, 3); unseen points get an identity block
-    (their rows are dropped by the update anyway)."""
-    P = cov_k.shape[0]
-    blocks = np.where(np.isfinite(cov_k).all(axis=(1, 2))[:, None, None], cov_k, np.eye(3))
-    R = np.zeros((P, 3, P, 3))
-    R[np.arange(P), :, np.arange(P), :] = blocks
-    return R.reshape(3 * P, 3 * P)
-
-
 def run_setup(model: PatchModel, meas: MeasurementSet, points: ObservedPoints | None = None):
     """What every estimator run over ``meas`` starts from: ``(points, observation, inputs (K, n_u), translation
     (K, 3), K, dt)`` (:func:`locate_points`, :func:`frame_interval`)."""
@@ -118,52 +108,64 @@ def run_setup(model: PatchModel, meas: MeasurementSet, points: ObservedPoints | 
             frame_interval(model, meas))
 
 
+def check_references(references: str) -> None:
+    from .reference import MODES
+
+    if references not in MODES:
+        raise ValueError(f"references: one of {MODES} expected, got {references!r}")
+
+
+@register("kf")
+class KalmanFilter(Estimator):
+    """The KF variant (:mod:`tracker.estimators`): the linear prediction ``x' = A x + B0 u0 + B1 u1``,
+    ``C' = A C A^T + Q`` at a fixed theta (no parameter block, M = 0); with static states,
+    ``A = blkdiag(A(theta), I)``."""
+
+    def __init__(self, theta, A, B0, B1, Q):
+        self.theta = np.asarray(theta, float)
+        self.A, self.B0, self.B1, self.Q = A, B0, B1, Q
+
+    def predict(self, state, u0, u1, Q_n=None):
+        return predict(state, self.A, self.Q, self.B0 @ u0 + self.B1 @ u1), {}
+
+    def parameters(self, state):
+        return self.theta, np.zeros(5)
+
+
 def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=False,
-               points: ObservedPoints | None = None) -> EstimateSet:
-    """Kalman filter with fixed ``theta`` (default: the model file's) over a measurement set."""
+               points: ObservedPoints | None = None, references: str = "fixed", adaptation=None) -> EstimateSet:
+    """Kalman filter with fixed ``theta`` (default: the model file's) over a measurement set (the ``kf`` variant
+    of :mod:`tracker.estimators`, its frame loop :func:`tracker.estimators.run_filter`).
+
+    ``references='estimate'`` appends the static reference states (:mod:`tracker.reference`) to the state;
+    ``adaptation`` (:class:`tracker.adaptive.AdaptationOptions`) adds the model error estimated from the
+    innovations to R (the KF has no random walk to adapt)."""
+    from .reference import augment_observation, augment_transition, reference_block
+
+    check_references(references)
     theta = model.config.theta if theta is None else np.asarray(theta, float)
     pts, obs, u, trans, K, dt = run_setup(model, meas, points)
     sysd = model.system(theta, dt)
     Q = model.process_noise(theta, dt)
-    n = model.state_dim
-    P_all = meas.n_points
-    y_all = meas.positions[:, pts.keep, :].reshape(K, -1)
-    cov_all = meas.covariances[:, pts.keep]
-    H = obs.H
+    A, B0, B1 = sysd.A, sysd.B0, sysd.B1
+    mean0, cov0 = model.static_state(theta, u[0]), model.initial_covariance()
+    block = None
+    if references == "estimate":
+        block = reference_block(model, theta, u)
+        obs = augment_observation(obs, block)
+        A, _ = augment_transition(A, np.zeros(A.shape[0]), block.size)
+        B0 = np.vstack([B0, np.zeros((block.size, B0.shape[1]))])
+        B1 = np.vstack([B1, np.zeros((block.size, B1.shape[1]))])
+        Q = block.noise(Q)
+        mean0, cov0 = block.prior(mean0, cov0)
+    kf = KalmanFilter(theta, A, B0, B1, Q)
+    meta = {"dropped_points": pts.dropped.tolist(), "joseph": joseph, "dt": dt, "references": references,
+            "reference_states": 0 if block is None else block.size}
+    adapt = None
+    if adaptation is not None:
+        from .adaptive import NoiseAdaptation
 
-    prior = GaussianState(model.static_state(theta, u[0]), model.initial_covariance())
-    state_mean = np.full((K, n), np.nan)
-    state_var = np.full((K, n), np.nan)
-    predictions = np.full((K, P_all, 3), np.nan)
-    filtered = np.full((K, P_all, 3), np.nan)
-    innovations = np.full((K, P_all, 3), np.nan)
-    nis = np.full(K, np.nan)
-    dof = np.zeros(K, np.int64)
-    step_time = np.zeros(K)
-    completed = 0
-    state = prior
-    for k in range(K):
-        t0 = time.perf_counter()
-        if k > 0:
-            state = predict(state, sysd.A, Q, sysd.B0 @ u[k - 1] + sysd.B1 @ u[k])
-        offset = (obs.reference + trans[k]).reshape(-1)
-        pred_y = offset + H @ state.mean
-        res = update(state, y_all[k], H, _block_diag_R(cov_all[k]), offset, joseph=joseph)
-        state = res.state
-        step_time[k] = time.perf_counter() - t0
-        if not np.isfinite(state.mean).all():
-            raise EstimationDiverged(k)
-        predictions[k, pts.keep] = pred_y.reshape(-1, 3)
-        filtered[k, pts.keep] = (offset + H @ state.mean).reshape(-1, 3)
-        innovations[k, pts.keep] = (y_all[k] - pred_y).reshape(-1, 3)
-        state_mean[k] = state.mean
-        state_var[k] = np.diag(state.cov)
-        nis[k] = res.nis
-        dof[k] = res.dof
-        completed = k + 1
-    theta_k = np.broadcast_to(theta, (K, 5)).copy()
-    return EstimateSet(
-        "kf", meas.times, meas.point_ids, state_mean, state_var, theta_k, np.zeros((K, 5)), predictions,
-        innovations, nis, dof, np.zeros(K, np.int64), step_time, completed,
-        meta={"dropped_points": pts.dropped.tolist(), "joseph": joseph, "dt": dt}, filtered=filtered,
-    )
+        adapt = NoiseAdaptation(0, dt, np.zeros((0, 0)), adaptation)
+    return run_filter(kf, meas, GaussianState(mean0, cov0), obs.H, obs.reference, pts.keep, u, trans,
+                      np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt)
+

@@ -185,54 +185,82 @@ class TransitionFamily:
         nus, inv = np.unique(th[:, 4], return_inverse=True)
         return [(self.basis(nu), np.flatnonzero(inv == g)) for g, nu in enumerate(nus)]
 
-    def propagate(self, thetas, X, u0=None, u1=None) -> np.ndarray:
-        """``A(theta_i) x_i + B0(theta_i) u0 + B1(theta_i) u1`` for every sample: thetas (L, 5), X (L, 2r)."""
-        th = np.atleast_2d(np.asarray(thetas, float))
+    def _check_states(self, th, X):
+        """X (L, 2r + s): kinematic states, optionally followed by s static states (the reference block,
+        docs/estimators.md §3.7) that the transition leaves unchanged."""
         X = np.atleast_2d(np.asarray(X, float))
-        if X.shape != (th.shape[0], 2 * self.r):
-            raise ValueError(f"X: shape ({th.shape[0]}, {2 * self.r}) expected, got {X.shape}")
-        out = np.empty_like(X)
+        if X.shape[0] != th.shape[0] or X.shape[1] < 2 * self.r:
+            raise ValueError(f"X: shape ({th.shape[0]}, {2 * self.r} + static) expected, got {X.shape}")
+        return X
+
+    def propagate(self, thetas, X, u0=None, u1=None) -> np.ndarray:
+        """``A(theta_i) x_i + B0(theta_i) u0 + B1(theta_i) u1`` for every sample: thetas (L, 5), X (L, 2r + s);
+        the last s columns (static states) are copied unchanged."""
+        th = np.atleast_2d(np.asarray(thetas, float))
+        X = self._check_states(th, X)
+        n = 2 * self.r
+        out = X.copy()
         for basis, idx in self.groups(th):
             G, bt = self.modal_terms(th[idx], basis, u0, u1)
-            xt = basis.to_modal(X[idx])
+            xt = basis.to_modal(X[idx, :n])
             yt = np.einsum("iabp,ibp->iap", G, xt) + bt
-            out[idx] = basis.from_modal(yt)
+            out[idx, :n] = basis.from_modal(yt)
         return out
 
     def weighted_sandwich(self, thetas, weights, C) -> np.ndarray:
-        """``sum_i w_i A(theta_i) C A(theta_i)^T`` (2r, 2r) for any weights (one modal transform per nu group)."""
+        """``sum_i w_i A(theta_i) C A(theta_i)^T`` (one modal transform per nu group) for any weights; C may carry
+        s static states after the kinematic ones (``A = blkdiag(A(theta), I_s)``)."""
         return self.propagate_and_sandwich(thetas, None, weights, C)[1]
 
     def propagate_and_sandwich(self, thetas, X, weights, C, u0=None, u1=None):
-        """:meth:`propagate` of X (or None) and :meth:`weighted_sandwich` of C in one pass over the nu groups."""
+        """:meth:`propagate` of X (or None) and :meth:`weighted_sandwich` of C in one pass over the nu groups.
+
+        With s static states (C of size 2r + s): the kinematic block as below, the cross block
+        ``sum_i w_i A_i C_xs = T (sum_i w_i G_i) T^-1 C_xs`` per group (two r x r x s products each way) and the
+        static block ``(sum_i w_i) C_ss``."""
         th = np.atleast_2d(np.asarray(thetas, float))
         w = np.asarray(weights, float).reshape(-1)
         if w.size != th.shape[0]:
             raise ValueError(f"weights: {th.shape[0]} values expected, got {w.size}")
         n = 2 * self.r
+        r = self.r
+        C = np.asarray(C, float)
+        ns = C.shape[0] - n
+        if ns < 0 or C.shape != (n + ns, n + ns):
+            raise ValueError(f"C: square of size {n} + static expected, got {C.shape}")
         if X is not None:
-            X = np.atleast_2d(np.asarray(X, float))
-            if X.shape != (th.shape[0], n):
-                raise ValueError(f"X: shape ({th.shape[0]}, {n}) expected, got {X.shape}")
-        Y = None if X is None else np.empty_like(X)
-        out = np.zeros((n, n))
+            X = self._check_states(th, X)
+            if X.shape[1] != n + ns:
+                raise ValueError(f"X: {n + ns} columns expected (as C), got {X.shape[1]}")
+        Y = None if X is None else X.copy()
+        out = np.zeros((n + ns, n + ns))
+        C_xx = C[:n, :n]
+        C_xs = C[:n, n:]
         for basis, idx in self.groups(th):
             G, bt = self.modal_terms(th[idx], basis, u0, u1)
             if X is not None:
-                yt = np.einsum("iabp,ibp->iap", G, basis.to_modal(X[idx])) + bt
-                Y[idx] = basis.from_modal(yt)
-            Ct = basis.cov_to_modal(C)
+                yt = np.einsum("iabp,ibp->iap", G, basis.to_modal(X[idx, :n])) + bt
+                Y[idx, :n] = basis.from_modal(yt)
+            Ct = basis.cov_to_modal(C_xx)
             # S[a, b] = sum_{c, d} (sum_i w_i g_ac^i (g_bd^i)^T) o Ct[c, d]: all 16 weighted outer products in
             # one GEMM of (4r x Lg)(Lg x 4r), then one Hadamard contraction
             Lg = idx.size
-            Gf = G.reshape(Lg, 4 * self.r)
-            W = ((Gf * w[idx][:, None]).T @ Gf).reshape(2, 2, self.r, 2, 2, self.r)  # [a, c, p, b, d, q]
-            S = np.zeros((2, self.r, 2, self.r))  # [a, p, b, q]
+            Gf = G.reshape(Lg, 4 * r)
+            W = ((Gf * w[idx][:, None]).T @ Gf).reshape(2, 2, r, 2, 2, r)  # [a, c, p, b, d, q]
+            S = np.zeros((2, r, 2, r))  # [a, p, b, q]
             for c_ in range(2):
                 for d in range(2):
                     S += W[:, c_, :, :, d, :] * Ct[c_, d][None, :, None, :]
             S = S.transpose(0, 2, 1, 3)
-            out += basis.cov_from_modal(S)
+            out[:n, :n] += basis.cov_from_modal(S)
+            if ns:
+                Gw = np.einsum("i,iabp->abp", w[idx], G)                              # sum_i w_i G_i
+                Xt = np.stack([basis.PtM @ C_xs[:r], basis.PtM @ C_xs[r:]])            # T^-1 C_xs (2, r, s)
+                Yt = np.einsum("abp,bps->aps", Gw, Xt)
+                out[:n, n:] += np.concatenate([basis.Phi @ Yt[0], basis.Phi @ Yt[1]])
+        if ns:
+            out[n:, :n] = out[:n, n:].T
+            out[n:, n:] = w.sum() * C[n:, n:]
         return Y, out
 
     def system(self, theta):

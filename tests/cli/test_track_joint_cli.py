@@ -49,9 +49,19 @@ def test_joint_track_json_and_file(tmp_path, meas_file, name):
     # the model file's prior is centred on the truth: E stays within a few per cent
     assert s["theta_final"]["E"] == pytest.approx(150e3, rel=0.05)
     assert e.phi_mean.shape == (31, 2) and e.phi_cov.shape == (31, 2, 2)
-    # same as the library call
-    lib = run_joint(build_model(read_model(PAPER)), read_measurements(meas_file), name)
+    # same as the library call (the CLI adapts the noise levels by default; exact references: fixed)
+    from heartcv.tracker.adaptive import AdaptationOptions
+
+    assert s["references"] == "fixed" and s["adaptation"]["window_s"] == 0.03
+    lib = run_joint(build_model(read_model(PAPER)), read_measurements(meas_file), name,
+                    adaptation=AdaptationOptions())
     np.testing.assert_allclose(e.theta, lib.theta, rtol=1e-12)
+    plain = _run(["track", meas_file, "--model", PAPER, "--estimator", name, "-o", str(tmp_path / "p.npz"),
+                  "--no-adapt", "--json"])
+    assert plain.exit_code == 0 and json.loads(plain.stdout)["adaptation"] is None
+    np.testing.assert_allclose(read_estimates(str(tmp_path / "p.npz")).theta,
+                               run_joint(build_model(read_model(PAPER)), read_measurements(meas_file), name).theta,
+                               rtol=1e-12)
 
 
 @pytest.mark.parametrize("nodes, message", [

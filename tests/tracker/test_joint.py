@@ -181,15 +181,14 @@ class FrozenFamily:
         return Y, self.weighted_sandwich(thetas, weights, C)
 
 
-class FrozenJointFilter(JointFilter):
-    """The library's JointFilter (sampling, GE moments, UT, EKF Jacobian, truncation all unchanged) on a model whose
-    transition does not depend on the parameters: a linear-Gaussian joint problem. ``family`` supplies the
-    transition (a FrozenFamily); the patch model only provides the configuration."""
-
-    def __init__(self, name, model, space, family, Q_n, Q_l, options=JointOptions()):
-        super().__init__(name, model, space, model.config.dt, Q_n, Q_l, options)
-        assert self.modal  # the modal path reaches the transition only through self.family
-        self.family = family
+def FrozenJointFilter(name, model, space, family, Q_n, Q_l, options=JointOptions()):  # noqa: N802
+    """The library's registered joint variant ``name`` (sampling, GE moments, UT, EKF Jacobian, truncation all
+    unchanged) on a model whose transition does not depend on the parameters: a linear-Gaussian joint problem.
+    ``family`` supplies the transition (a FrozenFamily); the patch model only provides the configuration."""
+    filt = JointFilter(name, model, space, model.config.dt, Q_n, Q_l, options)
+    assert filt.modal  # the modal path reaches the transition only through filt.family
+    filt.family = family
+    return filt
 
 
 def joint_lg_problem(seed, space, n_l=4, m=3, steps=30, q_n=1e-4, param_sd=0.2):

@@ -203,3 +203,44 @@ def test_sequence_mismatch():
     assert "point ids" in tm.sequence_mismatch(a, _est(E1, point_ids=[5, 6]))
     assert "point ids" in tm.sequence_mismatch(a, _est(E1[:, :1]))
     assert "inputs_hash" in tm.sequence_mismatch(a, _est(E1, meta={"inputs_hash": {"measurements": "sha256:bb"}}))
+
+
+# -- theta_truth_agreement (issue 15) ------------------------------------------------------------------------------
+def test_theta_truth_agreement_matches_scipy_and_a_count():
+    from scipy.stats import pearsonr
+
+    from heartcv.tracker.metrics import theta_truth_agreement
+
+    rng = np.random.default_rng(3)
+    K = 200
+    t = np.arange(K) / 60.0
+    truth = np.tile([1070.0, 2.39, 0.003, 2e5, 0.47], (K, 1))
+    truth[:, 3] = 2e5 * (1 + 0.8 * np.clip(np.sin(2 * np.pi * t), 0, None))
+    sd = np.zeros((K, 5))
+    sd[:, 3] = 2e4
+    est = truth.copy()
+    est[:, 3] += rng.normal(0, 2e4, K)
+    est[0, 3] = np.nan                                        # step 0 is left out anyway
+    out = theta_truth_agreement(est, sd, truth, ["E", "nu"])
+    r_ref = pearsonr(est[1:, 3], truth[1:, 3]).statistic
+    assert out["correlation"]["E"] == pytest.approx(r_ref, rel=1e-12)
+    inside = sum(abs(est[k, 3] - truth[k, 3]) <= 2 * sd[k, 3] for k in range(1, K))
+    assert out["coverage_2sigma"]["E"] == pytest.approx(inside / (K - 1), abs=0)
+    # nu: both constant -> correlation undefined; std 0 and exact -> always covered
+    assert out["correlation"]["nu"] is None
+    assert out["coverage_2sigma"]["nu"] == 1.0
+
+
+def test_theta_truth_agreement_sign_and_shorter_truth():
+    from heartcv.tracker.metrics import theta_truth_agreement
+
+    K = 50
+    truth = np.tile([1.0, 1.0, 1.0, 1.0, 0.4], (K, 1))
+    truth[:, 3] = np.linspace(1, 2, K)
+    est = truth.copy()
+    est[:, 3] = 3 - truth[:, 3]                               # anti-correlated
+    sd = np.full((K, 5), 0.01)
+    out = theta_truth_agreement(est, sd, truth[:30], ["E"])
+    assert out["correlation"]["E"] == pytest.approx(-1.0, abs=1e-12)
+    # truth inside +-2 sd only where |3 - 2 T| <= 0.02, i.e. T within 0.01 of 1.5: none of the first 30 steps
+    assert out["coverage_2sigma"]["E"] == 0.0

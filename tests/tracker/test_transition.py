@@ -192,6 +192,37 @@ def test_weighted_sandwich_equals_dense(model, rng):
     assert rel_err(fam.weighted_sandwich(th[:1], [1.0], C), A0 @ C @ A0.T) <= RTOL
 
 
+def test_static_states_equal_dense_block_diagonal(model, rng):
+    """Static states after the kinematic ones (the reference block): the transition is blkdiag(A(theta), I_s);
+    propagate and the weighted sandwich equal the dense products (mixed nu groups, arbitrary weights)."""
+    th, tols = mixed_thetas(model)
+    s_dim = model.r
+    n = 2 * model.r
+    w = rng.uniform(0.05, 3.0, th.shape[0])
+    G = rng.standard_normal((n + s_dim, n + s_dim + 3))
+    d = np.r_[np.full(model.r, 1e-4), np.full(model.r, 1e-3), np.full(s_dim, 3e-4)]
+    C = (d[:, None] * G) @ (d[:, None] * G).T / n
+    C = 0.5 * (C + C.T)
+    X = np.hstack([realistic_states(model, rng, th.shape[0]), 1e-3 * rng.standard_normal((th.shape[0], s_dim))])
+    n_u = model.loads.shape[1]
+    u0, u1 = rng.uniform(500, 15000, n_u), rng.uniform(500, 15000, n_u)
+    fam = TransitionFamily(model, model.config.dt)
+    Y, S = fam.propagate_and_sandwich(th, X, w, C, u0, u1)
+    ref = np.zeros_like(C)
+    for i, (wi, t) in enumerate(zip(w, th)):
+        sysd = model.system(t)
+        Ab = np.eye(n + s_dim)
+        Ab[:n, :n] = sysd.A
+        ref += wi * (Ab @ C @ Ab.T)
+        y_ref = np.r_[sysd.A @ X[i, :n] + sysd.B0 @ u0 + sysd.B1 @ u1, X[i, n:]]
+        assert rel_err(Y[i], y_ref) <= tols[i], i
+        assert np.array_equal(fam.propagate(t[None], X[i:i + 1], u0, u1)[0, n:], X[i, n:])
+    assert rel_err(S, ref) <= RTOL
+    assert np.array_equal(S[n:, :n], S[:n, n:].T)
+    with pytest.raises(ValueError, match="columns"):
+        fam.propagate_and_sandwich(th, X[:, :-1], w, C)
+
+
 def test_shared_nu_shares_one_eigendecomposition(paper_model):
     th0 = np.array(paper_model.config.theta, float)
     fam = TransitionFamily(paper_model, paper_model.config.dt)
@@ -243,7 +274,7 @@ def test_bad_shapes_are_rejected(paper_model):
     fam = TransitionFamily(paper_model, paper_model.config.dt)
     th = np.tile(paper_model.config.theta, (3, 1))
     n = paper_model.state_dim
-    for shape in ((3, n + 1), (2, n), (4, n), (3, n // 2)):
+    for shape in ((2, n), (4, n), (3, n // 2), (3, n - 1)):
         with pytest.raises(ValueError, match="X"):
             fam.propagate(th, np.zeros(shape))
     with pytest.raises(ValueError, match="weights"):

@@ -1,0 +1,231 @@
+"""One predict/update shape for every estimator, one frame loop, one divergence policy, one registry of names.
+
+Every estimator of heartcv (docs/estimators.md) is a Gaussian filter on a joint state ``z = [x_n; x_l]``: ``x_n``
+the M estimated parameters in phi coordinates (M = 0 for the KF, whose parameters are held), ``x_l`` the linear
+block (the kinematic state, and the static reference states of :mod:`tracker.reference` when they are estimated).
+A variant (:class:`Estimator`) overrides small hooks only:
+
+* ``predict(state, u0, u1, Q_n)``: how the joint density is propagated over one frame (the KF: the linear
+  prediction at fixed theta; GE: Rao-Blackwellised Dirac-mixture sampling of the parameter block with exact
+  conditional propagation of the linear block; UKF / EKF: the joint unscented / linearised transforms);
+* ``constrain(state)``: what is done to the parameter block after a prediction and an update (truncation to the
+  box; nothing by default);
+* ``parameters(state)``: the physical theta and its standard deviation.
+
+Everything else is shared and lives here (:func:`run_filter`): the measurement update (:func:`tracker.kalman.update`
+on ``H_z = [0, H]``), the records per frame, the noise adaptation (:mod:`tracker.adaptive`) and the divergence
+policy: a non-finite or runaway state (|phi| > 1e3, |x_l| > 1e3) or a failed factorisation stops the run with
+:class:`tracker.tracking.EstimationDiverged`, whose ``partial`` holds the completed steps.
+
+The registry :data:`NAMES` is the one list of estimator names; :func:`variant` returns a variant's class.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+import scipy.linalg as sla
+
+from .kalman import GaussianState, update
+from .measurements import EstimateSet
+
+__all__ = ["NAMES", "JOINT", "Estimator", "register", "variant", "run_filter", "RUNAWAY_PHI", "RUNAWAY_STATE"]
+
+log = logging.getLogger(__name__)
+
+from .estimator_names import JOINT, NAMES  # noqa: E402  (the names live in a module without heavy imports)
+
+_VARIANTS: dict[str, type] = {}
+
+# A state beyond these is a diverged filter, not an estimate: stop before it reaches the model (e.g. a Poisson
+# ratio that rounds to exactly 0 or 0.5, or displacements of kilometres).
+RUNAWAY_PHI = 1e3   # |phi| (log-parameters: a factor e^1000)
+RUNAWAY_STATE = 1e3  # |x_l| (m, m/s)
+
+
+def register(name: str):
+    """Class decorator: the variant that implements estimator ``name`` (one of :data:`NAMES`)."""
+    if name not in NAMES:
+        raise ValueError(f"estimator: one of {NAMES} expected, got {name!r}")
+
+    def deco(cls):
+        _VARIANTS[name] = cls
+        cls.name = name
+        return cls
+    return deco
+
+
+def variant(name: str) -> type:
+    """The :class:`Estimator` subclass of ``name``."""
+    if name not in NAMES:
+        raise ValueError(f"estimator: one of {NAMES} expected, got {name!r}")
+    if name not in _VARIANTS:  # the variants register themselves on import
+        from . import joint, tracking  # noqa: F401
+    return _VARIANTS[name]
+
+
+class Estimator:
+    """The hooks of one estimator variant (see the module docstring). ``M`` is the size of the parameter block."""
+
+    name = "?"
+    M = 0
+
+    def predict(self, state: GaussianState, u0, u1, Q_n) -> tuple[GaussianState, dict]:
+        """The one-frame prediction and counters ``{'clipped', 'samples', 'jitter'}``."""
+        raise NotImplementedError
+
+    def constrain(self, state: GaussianState) -> tuple[GaussianState, int, int]:
+        """``(state, truncation events, low-mass events)``; the default leaves the state alone."""
+        return state, 0, 0
+
+    def parameters(self, state: GaussianState) -> tuple[np.ndarray, np.ndarray]:
+        """Physical theta (5,) and its standard deviation (5,) at ``state``."""
+        raise NotImplementedError
+
+    def meta(self) -> dict:
+        """Provenance of the variant's settings for the estimate file."""
+        return {}
+
+
+class _Runaway(FloatingPointError):
+    pass
+
+
+def _check_runaway(state: GaussianState, M: int, where: str):
+    mu, C = state.mean, state.cov
+    if not (np.isfinite(mu).all() and np.isfinite(C).all()):
+        raise _Runaway(f"non-finite {where}")
+    if np.abs(mu[:M]).max(initial=0) > RUNAWAY_PHI or np.abs(mu[M:]).max(initial=0) > RUNAWAY_STATE:
+        raise _Runaway(f"runaway {where}: |phi| up to {np.abs(mu[:M]).max(initial=0):.3g}, "
+                       f"|x_l| up to {np.abs(mu[M:]).max(initial=0):.3g}")
+
+
+def block_diag_R(cov_k: np.ndarray) -> np.ndarray:
+    """Block-diagonal R (3P, 3P) of per-point covariances (P, 3, 3); unseen points get an identity block
+    (their rows are dropped by the update anyway)."""
+    P = cov_k.shape[0]
+    blocks = np.where(np.isfinite(cov_k).all(axis=(1, 2))[:, None, None], cov_k, np.eye(3))
+    R = np.zeros((P, 3, P, 3))
+    R[np.arange(P), :, np.arange(P), :] = blocks
+    return R.reshape(3 * P, 3 * P)
+
+
+def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u, trans, Q_n, *,
+               joseph: bool = False, adapt=None, progress: Callable[[int, int], None] | None = None,
+               meta: dict | None = None) -> EstimateSet:
+    """The frame loop shared by every estimator.
+
+    Per frame k: ``k > 0``: predict (``est.predict``), constrain; record the one-step prediction
+    ``reference + r(t_k) + H x_l`` of every kept point; update with the points seen in frame k (NaN rows dropped),
+    constrain; record the filtered positions, the state, the parameters and the NIS.
+
+    Parameters
+    ----------
+    est : Estimator
+    meas : MeasurementSet (patch frame)
+    prior : GaussianState           the joint prior of ``[x_n; x_l]`` (size M + n_l)
+    H : ndarray (3 P_used, n_l)     measurement matrix of the kept points on the linear block
+    reference : ndarray (P_used, 3) their reference positions
+    keep : ndarray (P_used,) int    the kept points' indices in ``meas``
+    u : ndarray (K, n_u)            the model's inputs per frame
+    trans : ndarray (K, 3)          the known rigid translation per frame
+    Q_n : ndarray (M, M)            the parameters' random walk per frame (the adaptation may change it)
+    adapt : tracker.adaptive.NoiseAdaptation, optional
+        Sets the parameters' random walk and the scale of the measurement covariances from the innovations so far.
+    meta : dict                     merged into the estimate file's meta
+
+    Raises
+    ------
+    tracker.tracking.EstimationDiverged
+        The state became non-finite or ran away, or a factorisation failed; ``partial`` holds the steps done.
+    """
+    from .tracking import EstimationDiverged
+
+    M = est.M
+    K = meas.n_frames
+    n_l = prior.mean.size - M
+    Hz = np.hstack([np.zeros((H.shape[0], M)), H])
+    y_all = meas.positions[:, keep, :].reshape(K, -1)
+    cov_all = meas.covariances[:, keep]
+    P_all = meas.n_points
+
+    state_mean = np.full((K, n_l), np.nan)
+    state_var = np.full((K, n_l), np.nan)
+    theta = np.full((K, 5), np.nan)
+    theta_std = np.full((K, 5), np.nan)
+    phi_mean = np.full((K, M), np.nan) if M else None
+    phi_cov = np.full((K, M, M), np.nan) if M else None
+    predictions = np.full((K, P_all, 3), np.nan)
+    filtered = np.full((K, P_all, 3), np.nan)
+    innovations = np.full((K, P_all, 3), np.nan)
+    nis = np.full(K, np.nan)
+    dof = np.zeros(K, np.int64)
+    trunc = np.zeros(K, np.int64)
+    step_time = np.zeros(K)
+    counters = {"clipped": 0, "low_mass": 0, "jitter": 0}
+    Q_n = np.asarray(Q_n, float)
+    loglik = np.zeros(K)
+
+    def result(done):
+        md = dict(meta or {})
+        md.update(est.meta())
+        md["counters"] = dict(counters, **md.get("counters", {}))
+        if adapt is not None:
+            md["adaptation"] = adapt.summary()
+        md["log_likelihood"] = float(loglik[1:done].sum())   # innovations of frames 1 .. done-1
+        return EstimateSet(est.name, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std,
+                           predictions, innovations, nis, dof, trunc, step_time, done, meta=md, phi_mean=phi_mean,
+                           phi_cov=phi_cov, filtered=filtered)
+
+    state = prior
+    for k in range(K):
+        t0 = time.perf_counter()
+        events = 0
+        try:
+            if k > 0:
+                q_n = Q_n if adapt is None else adapt.random_walk(k, Q_n)
+                state, info = est.predict(state, u[k - 1], u[k], q_n)
+                counters["clipped"] += info.get("clipped", 0)
+                counters["jitter"] += info.get("jitter", 0)
+                _check_runaway(state, M, "prediction")
+                state, ev, low = est.constrain(state)
+                events += ev
+                counters["low_mass"] += low
+            predicted = state
+            offset = (reference + trans[k]).reshape(-1)
+            pred_y = offset + H @ state.mean[M:]
+            R = block_diag_R(cov_all[k])
+            if adapt is not None:
+                R = adapt.measurement_scale(k) * R
+            res = update(state, y_all[k], Hz, R, offset, joseph=joseph)
+            state = res.state
+            counters["jitter"] += res.jitter_events
+            _check_runaway(state, M, "update")
+            state, ev, low = est.constrain(state)
+            events += ev
+            counters["low_mass"] += low
+            if adapt is not None:
+                adapt.observe(k, predicted, state, res)
+        except (_Runaway, FloatingPointError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
+            log.error("%s: the estimate diverged at step %d (%s)", est.name, k, exc)
+            raise EstimationDiverged(k, result(k)) from None
+        step_time[k] = time.perf_counter() - t0
+        predictions[k, keep] = pred_y.reshape(-1, 3)
+        filtered[k, keep] = (offset + H @ state.mean[M:]).reshape(-1, 3)
+        innovations[k, keep] = (y_all[k] - pred_y).reshape(-1, 3)
+        state_mean[k] = state.mean[M:]
+        state_var[k] = np.diag(state.cov)[M:]
+        if M:
+            phi_mean[k] = state.mean[:M]
+            phi_cov[k] = state.cov[:M, :M]
+        theta[k], theta_std[k] = est.parameters(state)
+        nis[k] = res.nis
+        loglik[k] = res.log_likelihood
+        dof[k] = res.dof
+        trunc[k] = events
+        if progress is not None:
+            progress(k + 1, K)
+    return result(K)
