@@ -415,6 +415,7 @@ def _print_isolated(label, iso, step_median=None):
 # -- the section -----------------------------------------------------------------------------------------------------
 def bench_estimators(*, quick: bool = False) -> dict:
     from heartcv.tracker.config import model_config_from_dict
+    from heartcv.tracker.adaptive import AdaptationOptions
     from heartcv.tracker.joint import JointOptions, run_joint
     from heartcv.tracker.model import build_model
     from heartcv.tracker.simulate import simulate, to_measurements
@@ -475,6 +476,10 @@ def bench_estimators(*, quick: bool = False) -> dict:
                                    ("joint UKF", "ukf", opts), ("joint EKF", "ekf", opts)):
                 jobs[(name, key)] = lambda m, mdl=mdl, which=which, o=o: run_joint(mdl, m, which, options=o)
                 info[(name, key)] = (mdl, which, o)
+            # as `heartcv track` runs it by default: the noise adaptation on (docs/estimators.md 3.8)
+            jobs[("GE D=5 adapt", key)] = lambda m, mdl=mdl, o=opts: run_joint(mdl, m, "ge", options=o,
+                                                                              adaptation=AdaptationOptions())
+            info[("GE D=5 adapt", key)] = (mdl, "ge", opts)
         timed = _run_steps(jobs, meas, runs)
 
         steps, walls, est = timed["KF"]

@@ -10,7 +10,10 @@ the demo's fit window). Measured, median of repeats:
    and the fit problem's one residual evaluation (a deterministic simulation of the 120 frames plus the profiled
    offsets), with the evaluations per fit;
 3. ``tracker.fit.undeformed_references`` (the reference offsets of ``track --params``);
-4. the GE over the same frames (``tracker.joint.run_joint``), per step against the KF's step.
+4. the GE over the same frames (``tracker.joint.run_joint``), per step against the KF's step, and as ``heartcv track
+   --params`` runs it on measured points (issue 15): with the three reference states of ``tracker.reference`` and
+   the noise adaptation of ``tracker.adaptive`` (target: no slower per step than the plain GE of 2026-11-25,
+   3.6 ms on the project's 2-core machine).
 
 Each is printed with its ratio to the KF pass. The demo's wall time is dominated by rendering and measuring (see the
 ``render`` and ``measure`` sections); this section shows that the estimation stages cost seconds, not minutes.
@@ -64,6 +67,13 @@ def bench_fit(*, quick: bool = False) -> dict:
                          warmup=0)
         t_ref = measure(lambda: undeformed_references(model, meas, theta), repeats=repeats)
         t_ge = measure(lambda: run_joint(model, meas, "ge"), repeats=max(1, repeats // 2), warmup=0)
+        from heartcv.tracker.adaptive import AdaptationOptions
+
+        t_ge_track = measure(lambda: run_joint(model, meas, "ge", references="estimate",
+                                               adaptation=AdaptationOptions()), repeats=max(1, repeats // 2), warmup=0)
+        ge_step = float(np.median(run_joint(model, meas, "ge").step_time[1:]))
+        ge_track_step = float(np.median(run_joint(model, meas, "ge", references="estimate",
+                                                  adaptation=AdaptationOptions()).step_time[1:]))
     base = kf.median
     rows = [
         ["KF pass (baseline)", fmt_time(base), "1.00x", ""],
@@ -74,7 +84,11 @@ def bench_fit(*, quick: bool = False) -> dict:
          f"converged {res3.converged}"],
         ["undeformed references", fmt_time(t_ref.median), fmt_ratio(t_ref.median / base), ""],
         ["GE pass", fmt_time(t_ge.median), fmt_ratio(t_ge.median / base),
-         f"per step {fmt_time(t_ge.median / frames)} vs KF {fmt_time(base / frames)}"],
+         f"per step {fmt_time(t_ge.median / frames)} vs KF {fmt_time(base / frames)}; step_time median "
+         f"{fmt_time(ge_step)}"],
+        ["GE pass, reference states + adaptation", fmt_time(t_ge_track.median), fmt_ratio(t_ge_track.median / base),
+         f"per step {fmt_time(t_ge_track.median / frames)}; step_time median {fmt_time(ge_track_step)} "
+         f"({ge_track_step / ge_step:.2f}x the plain GE's)"],
     ]
     print()
     print(table(["stage", "median", "/ KF pass", "note"], rows,
@@ -83,6 +97,8 @@ def bench_fit(*, quick: bool = False) -> dict:
           f"(truth {theta[4]:.4f}); covariance {res1.covariance_kind}")
     return {"frames": frames, "points": int(meas.n_points), "state_dim": int(model.state_dim),
             "kf_pass_s": base, "residuals_s": t_res.median, "fit_1_start_s": t_fit1.median,
+            "ge_track_pass_s": t_ge_track.median, "ge_step_median_s": ge_step,
+            "ge_track_step_median_s": ge_track_step,
             "fit_3_starts_s": t_fit3.median, "references_s": t_ref.median, "ge_pass_s": t_ge.median,
             "ratios": {"fit_1_start_over_kf": t_fit1.median / base, "fit_3_starts_over_kf": t_fit3.median / base,
                        "ge_over_kf": t_ge.median / base},

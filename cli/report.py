@@ -51,6 +51,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
     runs = _load_estimates(estimates)
     _check_sequences(runs, allow_mixed)
     noise, noise_source = _measurement_noise(meas_file, runs, allow_mixed)
+    phases = _phases(meas_file)
     truth = _load_truth(truth_file, runs, allow_mixed, meas_file) if truth_file else None
     for label, r in runs.items():
         if truth is not None and label in truth["positions"] and r["est"].filtered is None:
@@ -61,7 +62,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
     metrics.update(_provenance(runs, truth_file, meas_file))
     with atomic_folder(output, producer=PRODUCER) as tmp:
-        doc = _write_folder(tmp, metrics, runs, compared["per_run"], truth, noise, dpi)
+        doc = _write_folder(tmp, metrics, runs, compared["per_run"], truth, noise, dpi, phases)
     if as_json:
         emit_json(dict(doc, output=output))
     else:
@@ -80,12 +81,12 @@ def _provenance(runs, truth_file, meas_file) -> dict:
             "inputs_hash": hashes}
 
 
-def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi) -> dict:
+def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases=None) -> dict:
     """The figures, metrics.json, summary.md and index.html into ``tmp``; returns the metrics document."""
     from .report_doc import html, markdown
     from .report_plots import write_figures
 
-    figures = write_figures(tmp, runs, per, truth, noise, dpi, LEVEL)
+    figures = write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases)
     metrics["figures"] = [f for f, _ in figures]
     metrics["files"] = [f for f, _ in figures] + ["metrics.json", "summary.md", "index.html"]
     doc = _jsonable(metrics)
@@ -154,6 +155,19 @@ def _mismatch(times_a, times_b, label_a, label_b, allow_mixed, what) -> bool:
             raise BadInput(f"{msg}; {what} of another sequence? use --allow-mixed to go on without it")
         log.warning("%s; %s left out", msg, what)
     return why is not None
+
+
+def _phases(meas_file):
+    """(times, systole) from the pressure of --measurements (None without the file or a pressure input)."""
+    if not meas_file:
+        return None
+    from heartcv.tracker.io import read_measurements
+    from heartcv.tracker.metrics import systole_mask
+
+    m = read_measurements(meas_file)
+    if "pressure" not in m.input_names:
+        return None
+    return m.times, systole_mask(m.input_columns(("pressure",))[:, 0])
 
 
 def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):

@@ -115,8 +115,9 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
     return fig
 
 
-def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=None):
-    """Posterior mean of one parameter per estimator with its ±2σ band, and the truth if given.
+def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=None, phases=None):
+    """Posterior mean of one parameter per estimator with its ±2σ band, and the truth if given; systole shaded
+    when ``phases`` is given.
 
     Parameters
     ----------
@@ -126,6 +127,7 @@ def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=Non
         Its SI unit (``tracker.params.UNITS``); Pa and s get an SI prefix from the data.
     series : dict label -> (times (K,), mean (K,), std (K,))
     truth : (times, values), optional
+    phases : (times (K,), systole (K,) bool), optional
     """
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
@@ -146,6 +148,13 @@ def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=Non
     if truth is not None:
         ax.plot(truth[0], np.asarray(truth[1]) * scale, color="k", lw=1.2, ls="--", zorder=4)
         handles.append(Line2D([], [], color="k", lw=1.2, ls="--", label="truth"))
+    if phases is not None and np.any(phases[1]):
+        t, sys_ = np.asarray(phases[0], float), np.asarray(phases[1], bool)
+        half = 0.5 * float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        edges = np.flatnonzero(np.diff(np.r_[0, sys_.astype(int), 0]))
+        for a, b in zip(edges[::2], edges[1::2]):
+            ax.axvspan(t[a] - half, t[b - 1] + half, color="#d62728", alpha=0.07, lw=0, zorder=0)
+        handles.append(Patch(color="#d62728", alpha=0.15, label="systole"))
     unit_txt = "" if pu in ("", "1") else f" [{pu.replace('^3', '³')}]"
     ax.set_ylabel(f"{TITLES.get(name, name)}{unit_txt}")
     ax.ticklabel_format(axis="y", useOffset=False)
@@ -309,7 +318,7 @@ CAPTIONS = {
 
 
 def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 150,
-                  level: float = 0.95) -> list:
+                  level: float = 0.95, phases=None) -> list:
     """Write the report's PNGs into ``folder``; returns [(file name, caption)] in report order.
 
     Parameters
@@ -322,6 +331,9 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
         ``{'times', 'theta', 'positions': label -> (K, P, 3)}`` (cli/report.py).
     noise : float or None
         Per-coordinate measurement noise σ, m.
+    phases : (times, systole) or None
+        Systole per frame (:func:`tracker.metrics.systole_mask` of the measurements' pressure), shaded on the
+        parameter figures.
     """
     import numpy as np
 
@@ -350,9 +362,11 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
         name = NAMES[j]
         tr = (truth["times"], truth["theta"][:, j]) if truth is not None else None
         fig = parameter_figure(name, UNITS[j], {k: (p["times"], p["theta"][:, j], p["theta_std"][:, j])
-                                                   for k, p in ps.items()}, colors, tr)
+                                                   for k, p in ps.items()}, colors, tr, phases)
         save(fig, f"parameter_{name}.png", f"{TITLES[name][0].upper()}{TITLES[name][1:]}: posterior mean per "
-             "estimator with its ±2σ band" + (" and the truth (dashed)." if tr else "."))
+             "estimator with its ±2σ band" + (" and the truth (dashed)" if tr else "")
+             + ("; shaded: systole (the measured pressure above the midpoint of its range), unshaded: diastole."
+                if phases is not None and np.any(phases[1]) else "."))
     with_nis = {k: (p["times"], p["nis"], p["nis_dof"], per[k]["nis_mean"] / per[k]["nis_mean_dof"])
                 for k, p in ps.items() if per[k]["nis_steps"]}
     if with_nis:

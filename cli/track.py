@@ -54,16 +54,19 @@ def _odd_nodes(ctx, param, value):
                    "them when they are the fit's offsets (measured points with --params) and fixes them otherwise "
                    "(model simulate's exact references).")
 @click.option("--adapt/--no-adapt", default=True, show_default=True,
-              help="Choose the noise levels from the innovations while running (docs/estimators.md 3.8): the scale "
-                   "of the measurement covariances (the part of a point's error that changes from frame to frame) "
-                   "and, for ge/ukf/ekf, the parameters' random walk (never below the model file's).")
+              help="Scale the measurement covariances to the innovations while running (docs/estimators.md 3.8): "
+                   "the part of a point's error that changes from frame to frame, plus what the model cannot "
+                   "represent.")
+@click.option("--adapt-random-walk", is_flag=True,
+              help="ge/ukf/ekf: also raise the parameters' random walk where the data move them faster than the "
+                   "model file's walk allows (covariance matching; never below the model file's).")
 @click.option("--adapt-window", type=Float(1e-3, 60.0), default=ADAPT_WINDOW_S, show_default=True,
               help="Memory of the adaptation in seconds.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
-          adapt_window, output, as_json):
+          adapt_random_walk, adapt_window, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -103,7 +106,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         references = "estimate" if str(meas.meta.get("reference", "")).startswith(FIT_REFERENCES) else "fixed"
     try:
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
-                   _adaptation(adapt, adapt_window))
+                   _adaptation(adapt, adapt_random_walk, adapt_window))
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -180,10 +183,12 @@ def _prior(m, fitted, params_file):
         raise exc.in_file(params_file) from None
 
 
-def _adaptation(adapt, window):
+def _adaptation(adapt, random_walk, window):
     from heartcv.tracker.adaptive import AdaptationOptions
 
-    return AdaptationOptions(window_s=window) if adapt else None
+    if not (adapt or random_walk):
+        return None
+    return AdaptationOptions(measurement_scale=adapt, random_walk=random_walk, window_s=window)
 
 
 def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation):

@@ -39,14 +39,15 @@ __all__ = ["AdaptationOptions", "NoiseAdaptation"]
 class AdaptationOptions:
     """Settings of :class:`NoiseAdaptation`.
 
-    random_walk : adapt the parameters' random walk (never below the model file's)
+    random_walk : adapt the parameters' random walk (never below the model file's); off by default: on both
+        rendered scenes it did not improve the parameters (docs/estimators.md 3.8)
     measurement_scale : adapt the scale of the measurement covariances
     window_s : memory of the weighted means (s); a frame's weight decays as exp(-age / window_s)
     q_max_std : largest random-walk std per square-root second (phi units)
     scale_min, scale_max : bounds of the measurement scale
     """
 
-    random_walk: bool = True
+    random_walk: bool = False
     measurement_scale: bool = True
     window_s: float = 0.03
     q_max_std: float = 5.0

@@ -49,6 +49,7 @@ __all__ = [
     "estimator_metrics",
     "compare_runs",
     "theta_truth_agreement",
+    "systole_mask",
     "truth_in_patch_frame",
     "pose_magnitude",
 ]
@@ -342,6 +343,20 @@ def _ratio(a, b) -> float | None:
     if a is None or b is None or not (np.isfinite(a) and np.isfinite(b) and b > 0):
         return None
     return float(a / b)
+
+
+def systole_mask(pressure) -> np.ndarray:
+    """The frames of systole (K,) bool from a ventricular pressure (K,): the pressure above the midpoint of its
+    range over the sequence (isovolumic contraction, ejection and the start of relaxation: the high-pressure
+    phase); diastole is the rest. All False for a pressure that does not vary (or is not finite anywhere)."""
+    p = np.asarray(pressure, float).reshape(-1)
+    ok = np.isfinite(p)
+    if not ok.any():
+        return np.zeros(p.size, bool)
+    lo, hi = p[ok].min(), p[ok].max()
+    if not hi > lo:
+        return np.zeros(p.size, bool)
+    return ok & (p > 0.5 * (lo + hi))
 
 
 def theta_truth_agreement(theta, theta_std, truth_theta, estimated, *, first: int = 1) -> dict:

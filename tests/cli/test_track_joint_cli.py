@@ -56,6 +56,10 @@ def test_joint_track_json_and_file(tmp_path, meas_file, name):
     lib = run_joint(build_model(read_model(PAPER)), read_measurements(meas_file), name,
                     adaptation=AdaptationOptions())
     np.testing.assert_allclose(e.theta, lib.theta, rtol=1e-12)
+    assert s["adaptation"]["measurement_scale"] and not s["adaptation"]["random_walk"]
+    walk = _run(["track", meas_file, "--model", PAPER, "--estimator", name, "-o", str(tmp_path / "w.npz"),
+                 "--adapt-random-walk", "--json"])
+    assert walk.exit_code == 0 and json.loads(walk.stdout)["adaptation"]["random_walk"]
     plain = _run(["track", meas_file, "--model", PAPER, "--estimator", name, "-o", str(tmp_path / "p.npz"),
                   "--no-adapt", "--json"])
     assert plain.exit_code == 0 and json.loads(plain.stdout)["adaptation"] is None

@@ -55,7 +55,7 @@ def test_random_walk_estimate_is_the_moment_identity():
     dt = 1 / 60
     q_floor = 1e-4
     q_true = 9e-4
-    ad = NoiseAdaptation(1, dt, np.array([[q_floor]]), AdaptationOptions(window_s=2.0, measurement_scale=False))
+    ad = NoiseAdaptation(1, dt, np.array([[q_floor]]), AdaptationOptions(window_s=2.0, measurement_scale=False, random_walk=True))
     removed = 3e-4
     qs = []
     for k in range(1, 20001):
@@ -66,7 +66,7 @@ def test_random_walk_estimate_is_the_moment_identity():
         qs.append(ad.q[0])
     assert np.mean(qs[2000:]) == pytest.approx(q_true, rel=0.05)
     assert min(qs) >= q_floor
-    ad2 = NoiseAdaptation(1, dt, np.array([[q_floor]]), AdaptationOptions(measurement_scale=False))
+    ad2 = NoiseAdaptation(1, dt, np.array([[q_floor]]), AdaptationOptions(measurement_scale=False, random_walk=True))
     for k in range(1, 2000):
         pred = GaussianState(np.zeros(1), np.array([[removed + 1e-4]]))
         post = GaussianState(np.array([rng.normal(0, np.sqrt(removed) * 0.5)]), np.array([[1e-4]]))
@@ -84,3 +84,25 @@ def test_scale_is_bounded_and_options_checked():
     for bad in (dict(window_s=0), dict(q_max_std=-1), dict(scale_min=2.0), dict(scale_max=0.5)):
         with pytest.raises(ValueError):
             AdaptationOptions(**bad)
+
+
+def test_random_walk_is_rescaled_to_the_frame_interval():
+    """random_walk_std is per frame at the model file's frame_rate: a sequence at half that rate gets sqrt(2) x the
+    std per frame (the same variance per second), and run_joint uses it."""
+    import copy
+
+    from heartcv.tracker.config import model_config_from_dict
+    from heartcv.tracker.joint import joint_prior
+    from heartcv.tracker.model import build_model
+    from tests.conftest import load_yaml
+
+    d = copy.deepcopy(load_yaml("stiffness_cycle.yaml"))
+    cfg = model_config_from_dict(d)
+    sd = cfg.random_walk_std_phi()
+    assert sd[0] > 0
+    np.testing.assert_allclose(cfg.random_walk_std_phi(1 / cfg.frame_rate), sd, rtol=1e-15)
+    np.testing.assert_allclose(cfg.random_walk_std_phi(2 / cfg.frame_rate), sd * np.sqrt(2), rtol=1e-15)
+    model = build_model(cfg)
+    u0 = np.zeros(model.loads.shape[1])
+    Q = joint_prior(model, u0, dt=2 / cfg.frame_rate).Q_n
+    np.testing.assert_allclose(np.diag(Q), 2 * sd ** 2, rtol=1e-15)

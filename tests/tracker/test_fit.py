@@ -318,6 +318,12 @@ def test_tracking_prior_rule(paper_model):
     _, sd2, source2 = tracking_prior(tight.config, res)
     assert source2 == {"alpha2": "model", "E": "model", "nu": "fit"}
     assert sd2[1] == 1e-4 and sd2[0] == tight.config.prior_std_phi()[0]
+    # a parameter with a random walk (it changes over the heartbeat) keeps the model file's prior: the fit's
+    # sigma is that of the fitted constant, not of the parameter in the first frame
+    walking = _model("paper_patch.yaml", estimation__random_walk_std={"E": 0.1, "nu": 0.0})
+    _, sd3, source3 = tracking_prior(walking.config, res)
+    assert source3 == {"E": "model", "nu": "fit"}
+    assert sd3[0] == walking.config.prior_std_phi()[0] and sd3[1] == pytest.approx(fit_sd[1], rel=1e-12)
 
 
 @pytest.mark.slow

@@ -244,3 +244,10 @@ def test_theta_truth_agreement_sign_and_shorter_truth():
     assert out["correlation"]["E"] == pytest.approx(-1.0, abs=1e-12)
     # truth inside +-2 sd only where |3 - 2 T| <= 0.02, i.e. T within 0.01 of 1.5: none of the first 30 steps
     assert out["coverage_2sigma"]["E"] == 0.0
+
+
+def test_systole_mask_is_the_high_pressure_half():
+    p = np.array([5.0, 10.0, 60.0, 100.0, 98.0, 52.6, 52.4, 6.0, np.nan, 5.0])   # range 5 .. 100: midpoint 52.5
+    np.testing.assert_array_equal(tm.systole_mask(p), [0, 0, 1, 1, 1, 1, 0, 0, 0, 0])
+    assert not tm.systole_mask(np.full(5, 7.0)).any()
+    assert not tm.systole_mask(np.full(3, np.nan)).any()
