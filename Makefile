@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
 TORCH ?= torch==2.13.0
 
-.PHONY: test test-slow test-gpu demo bench clean-venv fuzz calibrate-real measure-real
+.PHONY: test test-slow test-gpu demo phantom95 bench clean-venv fuzz calibrate-real measure-real
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,11 @@ test-gpu: $(STAMP)
 
 demo: $(STAMP)
 	$(MAKE) -C sample_sequences demo PY=$(abspath $(PY))
+
+# the second rendered scene of issue 15 (95 bpm, another patch, E 2.5x, respiration, an instrument; reuses the
+# demo's calibration): sample_sequences/work/phantom95_scene/report/
+phantom95: $(STAMP)
+	$(MAKE) -C sample_sequences phantom95 PY=$(abspath $(PY))
 
 bench: $(STAMP)
 	$(PY) -m benchmarks all

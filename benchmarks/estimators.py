@@ -414,8 +414,8 @@ def _print_isolated(label, iso, step_median=None):
 
 # -- the section -----------------------------------------------------------------------------------------------------
 def bench_estimators(*, quick: bool = False) -> dict:
-    from heartcv.tracker.config import model_config_from_dict
     from heartcv.tracker.adaptive import AdaptationOptions
+    from heartcv.tracker.config import model_config_from_dict
     from heartcv.tracker.joint import JointOptions, run_joint
     from heartcv.tracker.model import build_model
     from heartcv.tracker.simulate import simulate, to_measurements

@@ -13,12 +13,13 @@ from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs
 log = logging.getLogger(__name__)
 
 from heartcv.tracker.estimator_names import NAMES as ESTIMATORS  # noqa: E402  (the one registry of names)
+
 ESTIMATOR_HELP = ("kf: Kalman filter with the model file's parameters held fixed; ge: Rao-Blackwellised Gaussian "
                   "estimator of state and parameters (the paper's); ukf / ekf: joint unscented / extended Kalman "
                   "filters on the augmented state (baselines). See docs/estimators.md.")
 MAX_NODES = 51  # as estimation.ge.nodes of the model file
-FIT_REFERENCES = "undeformed: heartcv fit"
-ADAPT_WINDOW_S = 0.03  # as tracker.adaptive.AdaptationOptions.window_s  # meta.reference of a set whose references are the fit's offsets
+FIT_REFERENCES = "undeformed: heartcv fit"  # meta.reference of a set whose references are the fit's offsets
+ADAPT_WINDOW_S = 0.03  # as tracker.adaptive.AdaptationOptions.window_s
 
 
 def partial_path(output) -> Path:

@@ -37,7 +37,7 @@ from .transition import TransitionFamily
 from .truncation import SKIP_SIGMA, truncate_box
 
 __all__ = ["JointOptions", "JointPrior", "joint_prior", "run_joint", "ESTIMATORS", "JointFilter", "GEFilter",
-           "UKFFilter", "EKFFilter", "make_filter"]
+           "UKFFilter", "EKFFilter"]
 
 log = logging.getLogger(__name__)
 

@@ -421,10 +421,11 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         measurements' own truth error over the observations k >= 1, :func:`measurement_truth_error_norms`; NaN
         without truth) and ``theta_truth_final`` (the truth's theta at the run's last completed step, by name;
         None without a truth of that length), ``theta_truth_correlation`` and ``theta_truth_coverage_2sigma``
-        (by estimated parameter, :func:`theta_truth_agreement`; None without a truth); ``sequence``: ``frames``, ``duration_s``, ``points``, ``dt_s``
-        (median frame interval, None for one frame) and ``mixed`` (some run is of another sequence,
-        :func:`sequence_mismatch`); ``measurement_truth_error_mean_m`` (of the first run that has one, else
-        None); ``ratio_ge_to_kf_prediction_error`` and ``ratio_ge_to_kf_truth_error`` (runs labelled ``ge`` and
+        (by estimated parameter, :func:`theta_truth_agreement`; None without a truth); ``sequence``:
+        ``frames``, ``duration_s``, ``points``, ``dt_s`` (median frame interval, None for one frame) and
+        ``mixed`` (some run is of another sequence, :func:`sequence_mismatch`);
+        ``measurement_truth_error_mean_m`` (of the first run that has one, else None);
+        ``ratio_ge_to_kf_prediction_error`` and ``ratio_ge_to_kf_truth_error`` (runs labelled ``ge`` and
         ``kf``; None without both or a non-positive denominator).
     """
     truth_positions = truth_positions or {}

@@ -31,9 +31,9 @@ from typing import Callable
 import numpy as np
 from scipy import stats
 
-from .files import InputError
 from .estimators import JOINT as JOINT_ESTIMATORS
 from .estimators import NAMES as ESTIMATORS
+from .files import InputError
 from .joint import run_joint
 from .model import PatchModel
 from .params import NAMES

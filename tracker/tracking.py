@@ -13,8 +13,8 @@ import logging
 
 import numpy as np
 
-from .files import InputError
 from .estimators import Estimator, register, run_filter
+from .files import InputError
 from .kalman import GaussianState, predict
 from .measurements import EstimateSet, MeasurementSet
 from .model import Observation, PatchModel

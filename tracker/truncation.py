@@ -118,8 +118,28 @@ def _straddle(lo, hi):
     return mean, var, np.log(z)
 
 
+def _straddle_scalar(lo: float, hi: float):
+    """:func:`_straddle` for one pair of floats with ``math`` (the common case of the GE's truncation: a bound a few
+    sigmas away on each side, or one of them infinite); the same formulas, ~20 x less call overhead."""
+    z = 0.5 * (math.erfc(-hi / math.sqrt(2.0)) - math.erfc(-lo / math.sqrt(2.0)))
+    c = 1.0 / math.sqrt(2.0 * math.pi)
+    pdf_lo = c * math.exp(-0.5 * lo * lo) if math.isfinite(lo) else 0.0
+    pdf_hi = c * math.exp(-0.5 * hi * hi) if math.isfinite(hi) else 0.0
+    x_pdf_lo = lo * pdf_lo if math.isfinite(lo) else 0.0
+    x_pdf_hi = hi * pdf_hi if math.isfinite(hi) else 0.0
+    mean = (pdf_lo - pdf_hi) / z
+    var = 1.0 + (x_pdf_lo - x_pdf_hi) / z - mean * mean
+    return mean, var, math.log(z)
+
+
 def _truncnorm_stats(alpha, beta):
     """Standardised mean, variance and log box mass ``log(Phi(beta) - Phi(alpha))``, broadcast over the inputs."""
+    if isinstance(alpha, float) and isinstance(beta, float) and alpha <= 0.0 <= beta \
+            and (beta - alpha) * (abs(0.5 * (alpha + beta)) + 1.0) > 1.0 and not (alpha == -beta == -math.inf):
+        # one pair, not narrow, straddling 0: the 'middle' path of the general code below (reflected likewise)
+        flip = alpha + beta < 0.0
+        mean, var, log_mass = _straddle_scalar(-beta, -alpha) if flip else _straddle_scalar(alpha, beta)
+        return np.float64(-mean if flip else mean), np.float64(max(var, 0.0)), np.float64(log_mass)
     al, be = np.broadcast_arrays(np.asarray(alpha, dtype=np.float64), np.asarray(beta, dtype=np.float64))
     shape = al.shape
     al, be = al.ravel(), be.ravel()
@@ -405,8 +425,8 @@ def _lift(mu, C, idx, chol_tt, mu_t, C_t):
     idx = np.asarray(idx)
     p = idx.size
     if p < n and np.array_equal(idx, np.arange(p)):  # the usual case: the leading block; slices, no fancy copies
-        W = solve_triangular(chol_tt, C[:p, p:], lower=True)                  # L^{-1} C_tr
-        K = solve_triangular(chol_tt, W, lower=True, trans="T").T             # C_rt C_tt^{-1}
+        W = solve_triangular(chol_tt, C[:p, p:], lower=True, check_finite=False)  # L^{-1} C_tr (validated)
+        K = solve_triangular(chol_tt, W, lower=True, trans="T", check_finite=False).T   # C_rt C_tt^{-1}
         KC = K @ C_t
         mean = mu.copy()
         mean[:p] = mu_t
@@ -502,13 +522,15 @@ def truncate_box(mean, cov, lower, upper, n_param, *, method="sequential", order
             raise ValueError(f"truncate_box: order must be a permutation of range({p}), got {order}")
     idx = np.arange(p)
     chol_nn = _chol(C[:p, :p], "C_nn")
-    unchanged = TruncationResult(mu, C, 0, 0, 0.0, method)
+
+    def unchanged():
+        return TruncationResult(mu, C, 0, 0, 0.0, method)
 
     if method == "tallis":
         sig = np.sqrt(np.diag(C)[:p])
         al, be = (lower - mu[:p]) / sig, (upper - mu[:p]) / sig
         if ((al < -SKIP_SIGMA) & (be > SKIP_SIGMA)).all():
-            return unchanged
+            return unchanged()
         t = np.flatnonzero(np.isfinite(lower) | np.isfinite(upper))
         rng = np.random.default_rng(_TALLIS_SEED)
         mu_t, C_t, P = _tallis(mu[t], C[np.ix_(t, t)], lower[t], upper[t], rng)
@@ -520,7 +542,7 @@ def truncate_box(mean, cov, lower, upper, n_param, *, method="sequential", order
 
     mu_n, C_nn, events, low_mass, log_prob = _sequential(mu[:p].copy(), C[:p, :p].copy(), lower, upper, order)
     if events == 0:
-        return unchanged
+        return unchanged()
     if low_mass:
         logger.warning("truncate_box: %d constraint(s) with box mass < %g (model-measurement conflict)",
                        low_mass, LOW_MASS)

@@ -55,7 +55,8 @@ def test_random_walk_estimate_is_the_moment_identity():
     dt = 1 / 60
     q_floor = 1e-4
     q_true = 9e-4
-    ad = NoiseAdaptation(1, dt, np.array([[q_floor]]), AdaptationOptions(window_s=2.0, measurement_scale=False, random_walk=True))
+    ad = NoiseAdaptation(1, dt, np.array([[q_floor]]),
+                         AdaptationOptions(window_s=2.0, measurement_scale=False, random_walk=True))
     removed = 3e-4
     qs = []
     for k in range(1, 20001):
@@ -66,7 +67,8 @@ def test_random_walk_estimate_is_the_moment_identity():
         qs.append(ad.q[0])
     assert np.mean(qs[2000:]) == pytest.approx(q_true, rel=0.05)
     assert min(qs) >= q_floor
-    ad2 = NoiseAdaptation(1, dt, np.array([[q_floor]]), AdaptationOptions(measurement_scale=False, random_walk=True))
+    ad2 = NoiseAdaptation(1, dt, np.array([[q_floor]]),
+                          AdaptationOptions(measurement_scale=False, random_walk=True))
     for k in range(1, 2000):
         pred = GaussianState(np.zeros(1), np.array([[removed + 1e-4]]))
         post = GaussianState(np.array([rng.normal(0, np.sqrt(removed) * 0.5)]), np.array([[1e-4]]))

@@ -433,3 +433,18 @@ def test_result_is_frozen_and_checks_shapes():
         res.events = 0
     with pytest.raises(ValueError):
         TruncationResult(np.zeros(3), np.eye(2), 0, 0, 0.0)
+
+
+def test_scalar_fast_path_equals_the_array_path():
+    """One pair of floats straddling 0 takes a math-module path (the GE's common case); it equals the vectorised
+    formulas to rounding over a grid of bounds, reflected or not, with infinite ends."""
+    from heartcv.tracker.truncation import _truncnorm_stats
+
+    grid = [-np.inf, -40.0, -8.3, -3.0, -1.2, -0.4, 0.0, 0.3, 1.1, 2.5, 7.0, 50.0, np.inf]
+    for a in grid:
+        for b in grid:
+            if not a < b or a > 0 or b < 0:
+                continue
+            fast = np.array(_truncnorm_stats(float(a), float(b)), float)
+            slow = np.array([x[0] for x in _truncnorm_stats(np.array([a]), np.array([b]))], float)
+            np.testing.assert_allclose(fast, slow, rtol=1e-13, atol=1e-15, err_msg=f"{a}, {b}")
