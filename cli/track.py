@@ -168,9 +168,12 @@ def _with_params(m, meas, fitted, measurements, params_file, model_file):
         meas = undeformed_references(m, meas, fitted.theta, fitted.frames)
     except InputError as exc:
         raise exc.in_file(measurements) from None
+    if meas.meta.get("late_points"):
+        log.info("%d points born after the fit's %d frames: offsets from their own frames",
+                 len(meas.meta["late_points"]), fitted.frames)
     if meas.meta.get("dropped_points"):
-        log.info("%d points seen in fewer than two of the fit's %d frames were left out",
-                 len(meas.meta["dropped_points"]), fitted.frames)
+        log.info("%d points off the patch or seen in fewer than two frames were left out",
+                 len(meas.meta["dropped_points"]))
     return meas
 
 

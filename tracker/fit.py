@@ -543,6 +543,20 @@ REFERENCE_MODEL_ERROR = 0.1
 """Default relative model error of :func:`undeformed_references` (10 % of a point's model displacement)."""
 
 
+def _subset_points(meas: MeasurementSet, idx) -> MeasurementSet:
+    """The set restricted to the points ``idx`` (indices into its points), every frame."""
+    import dataclasses
+
+    meta = dict(meas.meta)
+    for key in ("reference_frame_index", "reference_uv"):
+        if key in meta:
+            meta[key] = [meta[key][i] for i in idx]
+    return dataclasses.replace(
+        meas, point_ids=meas.point_ids[idx], positions=meas.positions[:, idx], covariances=meas.covariances[:, idx],
+        reference=meas.reference[idx], views=meas.views[:, idx], reprojection_rms=meas.reprojection_rms[:, idx],
+        meta=meta)
+
+
 def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None,
                           relative_model_error: float = REFERENCE_MODEL_ERROR) -> MeasurementSet:
     """The measurement set with each point's ``reference`` replaced by its undeformed position at ``theta``.
@@ -555,21 +569,42 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
     model displacement over the first ``frames`` frames), here with a model-error term in the weights
     (``relative_model_error``, :meth:`FitProblem.offsets`): the fitted theta is a constant that cannot follow a
     stiffness that changes over the cycle, and with the plain weights its error at the large displacements of
-    systole would shift every undeformed position, which the GE then explains at rest by a drifting E. Points
-    the fit cannot use (seen in fewer than two of those frames, or off the patch) are dropped;
-    ``meta['dropped_points']`` lists their ids.
+    systole would shift every undeformed position, which the GE then explains at rest by a drifting E.
+
+    Points born after that window (seen in fewer than two of its frames; for instance after a respiration shift or
+    an instrument that uncovered them) get their offsets the same way from every frame they are seen in, with the
+    same deterministic model states continued over the whole sequence, so that their reference error has the same
+    structure as the others' (the span the reference states of :mod:`tracker.reference` correct). Points off the
+    patch or seen in fewer than two frames of the whole sequence are dropped; ``meta['dropped_points']`` lists
+    their ids and ``meta['late_points']`` those whose offsets came from after the window.
     """
     import dataclasses
 
     prob = FitProblem(model, meas, frames)
     keep = prob.keep
     offsets = prob.offsets(np.asarray(theta, float), relative_model_error)
+    late = np.zeros(0, np.int64)
+    if prob.frames < meas.n_frames:
+        candidates = np.setdiff1d(locate_points(model, meas).keep, keep)
+        seen = np.isfinite(meas.positions[:, candidates, 0]).sum(axis=0) >= 2
+        candidates = candidates[seen]
+        if candidates.size:
+            sub = _subset_points(meas, candidates)
+            late_prob = FitProblem(model, sub, None)
+            late = candidates[late_prob.keep]
+            late_off = late_prob.offsets(np.asarray(theta, float), relative_model_error)
+            order = np.argsort(np.r_[keep, late], kind="stable")
+            keep = np.r_[keep, late][order]
+            offsets = np.concatenate([offsets, late_off])[order]
     meta = dict(meas.meta)
     if "reference_frame_index" in meta:
         meta["reference_frame_index"] = [meta["reference_frame_index"][i] for i in keep]
     meta["reference"] = (f"undeformed: heartcv fit offsets over the first {prob.frames} frames, relative model "
-                         f"error {relative_model_error:g}")
-    meta["dropped_points"] = [int(i) for i in np.asarray(meas.point_ids)[prob.dropped]]
+                         f"error {relative_model_error:g}"
+                         + (f"; {late.size} points born later over all their frames" if late.size else ""))
+    dropped = np.setdiff1d(np.arange(meas.n_points), keep)
+    meta["dropped_points"] = [int(i) for i in np.asarray(meas.point_ids)[dropped]]
+    meta["late_points"] = [int(i) for i in np.asarray(meas.point_ids)[late]]
     return dataclasses.replace(
         meas, point_ids=meas.point_ids[keep], positions=meas.positions[:, keep],
         covariances=meas.covariances[:, keep], reference=offsets, views=meas.views[:, keep],

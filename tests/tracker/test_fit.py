@@ -375,6 +375,38 @@ def test_undeformed_references_recover_the_true_offsets_from_birth_frame_referen
     assert np.median(bias) > 3 * err.max()   # the birth-frame reference really is off: the test has power
 
 
+def test_points_born_after_the_fit_window_get_offsets_from_their_own_frames(paper_model):
+    """Points first seen after the fit's window (re-detected later) are kept: their offsets come from every frame
+    they are seen in, with the model states continued past the window, and equal the true undeformed positions to
+    within the noise of a mean over their frames; points seen once are dropped."""
+    import dataclasses
+
+    from heartcv.tracker.fit import undeformed_references
+
+    sim, meas = _noise_only(paper_model, 2.0, 13)
+    K = meas.n_frames
+    pos = meas.positions.copy()
+    cov = meas.covariances.copy()
+    late, once = [0, 5, 9], [3]
+    pos[:40, late] = np.nan                     # born at frame 40, after a 20-frame fit window
+    cov[:40, late] = np.nan
+    pos[:, once] = np.nan
+    cov[:, once] = np.nan
+    pos[50, once], cov[50, once] = meas.positions[50, once], meas.covariances[50, once]
+    birth_ref = meas.reference.copy()
+    birth_ref[late] = meas.positions[40, late]   # the deformed birth-frame position
+    m2 = dataclasses.replace(meas, positions=pos, covariances=cov, reference=birth_ref)
+    out = undeformed_references(paper_model, m2, paper_model.config.theta, frames=20)
+    assert out.meta["late_points"] == [int(meas.point_ids[i]) for i in late]
+    assert out.meta["dropped_points"] == [int(meas.point_ids[i]) for i in once]
+    assert list(out.point_ids) == [int(i) for i in meas.point_ids if i not in once]   # original order kept
+    sigma = np.sqrt(np.median(meas.covariances[0, :, 0, 0]))
+    idx = [list(out.point_ids).index(int(meas.point_ids[i])) for i in late]
+    err = np.abs(out.reference[idx] - meas.reference[late])
+    assert err.max() < 5 * sigma / np.sqrt(K - 40)
+    assert np.abs(birth_ref[late] - meas.reference[late]).max() > 3 * err.max()     # the test has power
+
+
 def test_reference_offsets_with_a_model_error_rest_on_the_least_deformed_frames(paper_model):
     """With a model whose displacements are 30 % too small (E 1.3x the truth's), the fit's plain offsets absorb
     the displacement error averaged over the frames; with the relative model error, the offsets rest on the
