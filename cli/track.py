@@ -12,11 +12,14 @@ from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs
 
 log = logging.getLogger(__name__)
 
+from heartcv.tracker.estimator_names import BASELINES  # noqa: E402
 from heartcv.tracker.estimator_names import NAMES as ESTIMATORS  # noqa: E402  (the one registry of names)
 
 ESTIMATOR_HELP = ("kf: Kalman filter with the model file's parameters held fixed; ge: Rao-Blackwellised Gaussian "
                   "estimator of state and parameters (the paper's); ukf / ekf: joint unscented / extended Kalman "
-                  "filters on the augmented state (baselines). See docs/estimators.md.")
+                  "filters on the augmented state (baselines); hold / constvel / harmonic: per-point predictors "
+                  "without physics (last measurement, constant velocity, periodic at the heart rate). See "
+                  "docs/estimators.md.")
 MAX_NODES = 51  # as estimation.ge.nodes of the model file
 FIT_REFERENCES = "undeformed: heartcv fit"  # meta.reference of a set whose references are the fit's offsets
 ADAPT_WINDOW_S = 0.03  # as tracker.adaptive.AdaptationOptions.window_s
@@ -63,11 +66,14 @@ def _odd_nodes(ctx, param, value):
                    "model file's walk allows (covariance matching; never below the model file's).")
 @click.option("--adapt-window", type=Float(1e-3, 60.0), default=ADAPT_WINDOW_S, show_default=True,
               help="Memory of the adaptation in seconds.")
+@click.option("--heart-rate-hz", type=Float(0.1, 10.0), default=None,
+              help="harmonic: the heart rate of the periodic predictor (default: the dominant frequency of the "
+                   "tracks' motion in 0.5-4 Hz).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
-          adapt_random_walk, adapt_window, output, as_json):
+          adapt_random_walk, adapt_window, heart_rate_hz, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -82,7 +88,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     from heartcv.tracker.io import file_hash, read_measurements, read_parameters, write_estimates
     from heartcv.tracker.tracking import EstimationDiverged
 
-    _check_scope(estimator, nodes, truncation)
+    _check_scope(estimator, nodes, truncation, joseph, heart_rate_hz)
     part = partial_path(output)
     guard_outputs({"-o/--output": output, "the partial file of -o": part},
                   {"MEASUREMENTS": measurements, "--model": model_file, "--params": params_file},
@@ -100,9 +106,14 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         meta["inputs_hash"]["params"] = file_hash(params_file)
         if isinstance(meas.meta.get("registration"), dict):     # rig-frame file: where the patch frame lies
             meta["patch_from_rig"] = meas.meta["registration"].get("patch_from_rig")
-        if estimator != "kf":
+        if estimator in ("ge", "ukf", "ekf"):
             theta0, prior_std, meta["prior_source"] = _prior(m, fitted, params_file)
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
+    if estimator in BASELINES:
+        est = _baseline(m, meas, estimator, heart_rate_hz, measurements)
+        write_estimates(output, est, meta)
+        _report(est, estimator, output, as_json)
+        return
     if references == "auto":
         references = "estimate" if str(meas.meta.get("reference", "")).startswith(FIT_REFERENCES) else "fixed"
     try:
@@ -120,18 +131,38 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     _report(est, estimator, output, as_json)
 
 
-def _check_scope(estimator, nodes, truncation) -> None:
-    if estimator == "kf" and truncation is not None:
+def _check_scope(estimator, nodes, truncation, joseph=False, heart_rate_hz=None) -> None:
+    if estimator in ("kf",) + BASELINES and truncation is not None:
         raise BadInput("--truncation applies to the joint estimators (ge, ukf, ekf) only")
     if estimator != "ge" and nodes is not None:
         raise BadInput("--nodes applies to the GE only")
+    if estimator in BASELINES and joseph:
+        raise BadInput(f"--joseph applies to the Kalman-type estimators, not to {estimator}")
+    if estimator != "harmonic" and heart_rate_hz is not None:
+        raise BadInput("--heart-rate-hz applies to the harmonic baseline only")
+
+
+def _baseline(m, meas, estimator, heart_rate_hz, measurements):
+    """A baseline on the points the model-based estimators use (those on the patch)."""
+    from heartcv.tracker.baselines import run_baseline
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.tracking import locate_points
+
+    try:
+        keep = locate_points(m, meas).keep
+    except InputError as exc:
+        raise exc.in_file(measurements) from None
+    try:
+        return run_baseline(estimator, meas, keep=keep, frequency_hz=heart_rate_hz)
+    except ValueError as exc:
+        raise StageFailed(f"{estimator}: {exc}") from None
 
 
 def _joint_options(m, model_file, estimator, nodes, truncation, joseph):
     """JointOptions of the joint estimators (None for kf); the options were validated by click."""
     from heartcv.tracker.joint import JointOptions
 
-    if estimator == "kf":
+    if estimator == "kf" or estimator in BASELINES:
         return None
     if not m.config.estimation.estimate:
         raise BadInput(f"{model_file}: estimation.estimate is empty; {estimator} needs at least one parameter")
@@ -242,12 +273,13 @@ def _report(est, estimator, output, as_json) -> None:
         "nis_dof_mean": finite(nis["mean_dof"]),
         "prediction_rmse_m": finite(est.prediction_rmse()),
         "step_ms_median": step_time_statistics(est.step_time)["median"] * 1e3,
-        "theta_final": dict(zip(NAMES, map(float, est.theta[-1]), strict=True)),
-        "theta_std_final": dict(zip(NAMES, map(float, est.theta_std[-1]), strict=True)),
+        "theta_final": dict(zip(NAMES, map(finite, est.theta[-1]), strict=True)),
+        "theta_std_final": dict(zip(NAMES, map(finite, est.theta_std[-1]), strict=True)),
         "truncation_events": int(est.truncation_events.sum()),
         "estimated": list(est.meta.get("estimated", [])),
         "references": est.meta.get("references", "fixed"),
         "adaptation": est.meta.get("adaptation"),
+        "heart_rate_hz": est.meta.get("heart_rate_hz"),
         "output": output,
     }
     if as_json:
@@ -256,7 +288,7 @@ def _report(est, estimator, output, as_json) -> None:
     rmse = summary["prediction_rmse_m"]
     msg = f"wrote {output}: {summary['steps']} steps, prediction RMSE " + (
         f"{rmse * 1e3:.4g} mm" if rmse is not None else "n/a (no point seen after frame 0)")
-    if estimator != "kf":
+    if estimator in ("ge", "ukf", "ekf"):
         msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
                                 for n in summary["estimated"])
     log.info(msg)

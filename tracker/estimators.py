@@ -36,7 +36,7 @@ __all__ = ["NAMES", "JOINT", "Estimator", "register", "variant", "run_filter", "
 
 log = logging.getLogger(__name__)
 
-from .estimator_names import JOINT, NAMES  # noqa: E402  (the names live in a module without heavy imports)
+from .estimator_names import JOINT, MODEL, NAMES  # noqa: E402, F401  (the names live in a light module)
 
 _VARIANTS: dict[str, type] = {}
 
@@ -47,9 +47,9 @@ RUNAWAY_STATE = 1e3  # |x_l| (m, m/s)
 
 
 def register(name: str):
-    """Class decorator: the variant that implements estimator ``name`` (one of :data:`NAMES`)."""
-    if name not in NAMES:
-        raise ValueError(f"estimator: one of {NAMES} expected, got {name!r}")
+    """Class decorator: the variant that implements estimator ``name`` (one of :data:`MODEL`)."""
+    if name not in MODEL:
+        raise ValueError(f"estimator: one of {MODEL} expected, got {name!r}")
 
     def deco(cls):
         _VARIANTS[name] = cls
@@ -59,9 +59,9 @@ def register(name: str):
 
 
 def variant(name: str) -> type:
-    """The :class:`Estimator` subclass of ``name``."""
-    if name not in NAMES:
-        raise ValueError(f"estimator: one of {NAMES} expected, got {name!r}")
+    """The :class:`Estimator` subclass of ``name`` (one of :data:`MODEL`; the baselines are not Gaussian filters)."""
+    if name not in MODEL:
+        raise ValueError(f"estimator: one of {MODEL} expected, got {name!r}")
     if name not in _VARIANTS:  # the variants register themselves on import
         from . import joint, tracking  # noqa: F401
     return _VARIANTS[name]

@@ -32,7 +32,7 @@ import numpy as np
 from scipy import stats
 
 from .estimators import JOINT as JOINT_ESTIMATORS
-from .estimators import NAMES as ESTIMATORS
+from .estimators import MODEL as ESTIMATORS
 from .files import InputError
 from .joint import run_joint
 from .model import PatchModel

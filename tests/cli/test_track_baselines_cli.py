@@ -1,0 +1,72 @@
+"""CLI: heartcv track --estimator hold|constvel|harmonic (issue 16 baselines): same outputs as the estimators,
+same points, bad usage."""
+
+import dataclasses
+import json
+
+from click.testing import CliRunner
+import numpy as np
+import pytest
+
+from heartcv.cli.main import main
+from heartcv.tracker.baselines import run_baseline
+from heartcv.tracker.io import read_estimates, read_measurements, write_measurements
+from tests.conftest import SAMPLES
+
+PAPER = str(SAMPLES / "paper_patch.yaml")
+
+
+@pytest.fixture(scope="module")
+def meas_file(tmp_path_factory):
+    d = tmp_path_factory.mktemp("baselines")
+    path = str(d / "m.npz")
+    res = CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "4", "--seed", "5", "-o", path])
+    assert res.exit_code == 0, res.output
+    return path
+
+
+@pytest.mark.parametrize("name", ["hold", "constvel", "harmonic"])
+def test_baseline_track_file_and_json(tmp_path, meas_file, name):
+    out = str(tmp_path / f"{name}.npz")
+    res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", name, "-o", out, "--json"])
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    e = read_estimates(out)
+    assert e.estimator == name and e.complete and s["steps"] == e.times.size
+    assert s["theta_final"]["E"] is None and s["nis_mean"] is None and s["estimated"] == []
+    lib = run_baseline(name, read_measurements(meas_file))
+    np.testing.assert_allclose(e.predictions, lib.predictions, rtol=1e-12, equal_nan=True)
+    assert s["prediction_rmse_m"] == pytest.approx(lib.prediction_rmse(), rel=1e-12)
+    if name == "harmonic":
+        assert s["heart_rate_hz"] == pytest.approx(1.0, rel=0.01)             # paper_patch: 60 bpm
+    # the report takes them beside the model-based estimators
+    kf = str(tmp_path / "kf.npz")
+    assert CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "-o", kf]).exit_code == 0
+    rep = CliRunner().invoke(main, ["report", kf, out, "-o", str(tmp_path / "rep"), "--json"])
+    assert rep.exit_code == 0, rep.output
+    assert json.loads(rep.stdout)["estimators"][name]["prediction_error_mean_m"] > 0
+
+
+def test_given_heart_rate_and_bad_usage(tmp_path, meas_file):
+    out = str(tmp_path / "h.npz")
+    res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "harmonic",
+                                    "--heart-rate-hz", "1.0", "-o", out, "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["heart_rate_hz"] == 1.0
+    for args, msg in ((["--estimator", "kf", "--heart-rate-hz", "1.2"], "--heart-rate-hz applies"),
+                      (["--estimator", "hold", "--joseph"], "--joseph applies"),
+                      (["--estimator", "constvel", "--truncation", "none"], "--truncation applies"),
+                      (["--estimator", "hold", "--nodes", "5"], "--nodes applies")):
+        r = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, *args, "-o", str(tmp_path / "x.npz")])
+        assert r.exit_code == 2 and msg in r.output, r.output
+
+
+def test_harmonic_without_periodic_motion_exits_1(tmp_path, meas_file):
+    m = read_measurements(meas_file)
+    rng = np.random.default_rng(0)
+    flat = dataclasses.replace(m, positions=m.reference[None] + 1e-4 * rng.normal(size=m.positions.shape))
+    path = tmp_path / "flat.npz"
+    write_measurements(path, flat, m.meta)
+    r = CliRunner().invoke(main, ["track", str(path), "--model", PAPER, "--estimator", "harmonic",
+                                  "-o", str(tmp_path / "h.npz")])
+    assert r.exit_code == 1 and "no heart rate" in r.output, r.output
+    assert not (tmp_path / "h.npz").exists()
