@@ -313,7 +313,9 @@ PER_ESTIMATOR_KEYS = (
     "prediction_error_count", "truth_error_mean_m", "truth_error_std_m", "truth_error_rms_m",
     "prediction_truth_error_mean_m", "prediction_truth_error_std_m", "prediction_truth_error_rms_m",
     "measurement_truth_error_mean_m", "nis_mean", "nis_mean_dof", "nis_mean_band", "nis_in_band_fraction",
-    "nis_steps", "theta_final", "theta_std_final", "step_time_median_s", "step_time_p95_s", "truncation_events")
+    "nis_steps", "theta_final", "theta_std_final", "step_time_median_s", "step_time_p95_s", "truncation_events",
+    "heldout_prediction_error_mean_m", "heldout_prediction_error_rms_m", "heldout_prediction_error_count",
+    "heldout_points")
 
 
 def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:

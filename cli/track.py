@@ -66,6 +66,11 @@ def _odd_nodes(ctx, param, value):
                    "model file's walk allows (covariance matching; never below the model file's).")
 @click.option("--adapt-window", type=Float(1e-3, 60.0), default=ADAPT_WINDOW_S, show_default=True,
               help="Memory of the adaptation in seconds.")
+@click.option("--holdout", type=Float(0.0, 1.0, hi_open=True), default=0.0, show_default=True,
+              help="Fraction of the tracks left out of every update (drawn with --seed): their one-step prediction "
+                   "error, from the model alone, is reported apart (heldout_prediction_error_mean_m). The same "
+                   "fraction and seed give every estimator the same tracks.")
+@click.option("--seed", type=Int(0, 2**63 - 1), default=0, show_default=True, help="Seed of --holdout's draw.")
 @click.option("--heart-rate-hz", type=Float(0.1, 10.0), default=None,
               help="harmonic: the heart rate of the periodic predictor (default: the dominant frequency of the "
                    "tracks' motion in 0.5-4 Hz).")
@@ -73,7 +78,7 @@ def _odd_nodes(ctx, param, value):
 @json_opt
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
-          adapt_random_walk, adapt_window, heart_rate_hz, output, as_json):
+          adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -109,8 +114,11 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         if estimator in ("ge", "ukf", "ekf"):
             theta0, prior_std, meta["prior_source"] = _prior(m, fitted, params_file)
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
+    heldout = _heldout(m, meas, holdout, seed, measurements)
+    if holdout:
+        meta.update(holdout=holdout, seed=seed)
     if estimator in BASELINES:
-        est = _baseline(m, meas, estimator, heart_rate_hz, measurements)
+        est = _baseline(m, meas, estimator, heart_rate_hz, measurements, heldout)
         write_estimates(output, est, meta)
         _report(est, estimator, output, as_json)
         return
@@ -118,7 +126,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         references = "estimate" if str(meas.meta.get("reference", "")).startswith(FIT_REFERENCES) else "fixed"
     try:
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
-                   _adaptation(adapt, adapt_random_walk, adapt_window))
+                   _adaptation(adapt, adapt_random_walk, adapt_window), heldout)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -142,7 +150,28 @@ def _check_scope(estimator, nodes, truncation, joseph=False, heart_rate_hz=None)
         raise BadInput("--heart-rate-hz applies to the harmonic baseline only")
 
 
-def _baseline(m, meas, estimator, heart_rate_hz, measurements):
+def _heldout(m, meas, fraction, seed, measurements):
+    """The held-out points (indices into ``meas``) among those on the patch; None without --holdout."""
+    import numpy as np
+
+    from heartcv.tracker.estimators import holdout_points
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.tracking import locate_points
+
+    if not fraction:
+        return None
+    try:
+        keep = locate_points(m, meas).keep
+    except InputError as exc:
+        raise exc.in_file(measurements) from None
+    held = holdout_points(keep, fraction, np.random.default_rng(seed))
+    if held.size == keep.size or held.size == 0:
+        raise BadInput(f"--holdout {fraction:g}: {held.size} of {keep.size} tracks; leave some in and some out")
+    log.info("%d of %d tracks held out of the updates (seed %d)", held.size, keep.size, seed)
+    return held
+
+
+def _baseline(m, meas, estimator, heart_rate_hz, measurements, heldout=None):
     """A baseline on the points the model-based estimators use (those on the patch)."""
     from heartcv.tracker.baselines import run_baseline
     from heartcv.tracker.files import InputError
@@ -153,7 +182,7 @@ def _baseline(m, meas, estimator, heart_rate_hz, measurements):
     except InputError as exc:
         raise exc.in_file(measurements) from None
     try:
-        return run_baseline(estimator, meas, keep=keep, frequency_hz=heart_rate_hz)
+        return run_baseline(estimator, meas, keep=keep, frequency_hz=heart_rate_hz, heldout=heldout)
     except ValueError as exc:
         raise StageFailed(f"{estimator}: {exc}") from None
 
@@ -226,7 +255,8 @@ def _adaptation(adapt, random_walk, window):
     return AdaptationOptions(measurement_scale=adapt, random_walk=random_walk, window_s=window)
 
 
-def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation):
+def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation,
+         heldout=None):
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker.joint import run_joint
@@ -235,12 +265,12 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
     with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
         if estimator == "kf":
             return run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph,
-                              references=references, adaptation=adaptation)
+                              references=references, adaptation=adaptation, heldout=heldout)
         with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
                 if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
             return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
                              progress=lambda done, total: bar.update(1), references=references,
-                             adaptation=adaptation)
+                             adaptation=adaptation, heldout=heldout)
 
 
 def _diverged(exc, estimator, meas, meta, part, output) -> str:
@@ -280,6 +310,7 @@ def _report(est, estimator, output, as_json) -> None:
         "references": est.meta.get("references", "fixed"),
         "adaptation": est.meta.get("adaptation"),
         "heart_rate_hz": est.meta.get("heart_rate_hz"),
+        "heldout_points": len(est.meta.get("heldout_points") or []),
         "output": output,
     }
     if as_json:

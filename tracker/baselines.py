@@ -182,7 +182,7 @@ def predict_harmonic(times, positions, frequency_hz: float, periods: int = PERIO
 
 
 def run_baseline(name: str, meas: MeasurementSet, *, keep=None, frequency_hz: float | None = None,
-                 periods: int = PERIODS) -> EstimateSet:
+                 periods: int = PERIODS, heldout=None) -> EstimateSet:
     """A baseline over a measurement set, as an :class:`EstimateSet`.
 
     Parameters
@@ -191,6 +191,9 @@ def run_baseline(name: str, meas: MeasurementSet, *, keep=None, frequency_hz: fl
     keep : (P_used,) int, optional   the points to predict (indices into ``meas``); others get NaN rows, as the
         points an estimator drops (default: every point)
     frequency_hz : the heart rate for ``harmonic`` (default: :func:`dominant_frequency` of the kept points)
+    heldout : (H,) int, optional      points (indices into ``meas``) whose errors the report keeps apart
+        (``meta.heldout_points``), as the model-based estimators' held-out tracks; a per-point predictor uses a
+        point's own past measurements either way
     """
     if name not in BASELINES:
         raise ValueError(f"baseline: one of {BASELINES} expected, got {name!r}")
@@ -199,6 +202,8 @@ def run_baseline(name: str, meas: MeasurementSet, *, keep=None, frequency_hz: fl
     keep = np.arange(P) if keep is None else np.asarray(keep, int)
     y = meas.positions[:, keep]
     meta = {"baseline": True, "dropped_points": np.setdiff1d(np.arange(P), keep).tolist(), "estimated": []}
+    if heldout is not None and len(heldout):
+        meta["heldout_points"] = [int(i) for i in np.asarray(meas.point_ids)[np.asarray(heldout)]]
     if name == "hold":
         pred = predict_hold(meas.times, y)
     elif name == "constvel":

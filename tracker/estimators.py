@@ -32,7 +32,8 @@ import scipy.linalg as sla
 from .kalman import GaussianState, update
 from .measurements import EstimateSet
 
-__all__ = ["NAMES", "JOINT", "Estimator", "register", "variant", "run_filter", "RUNAWAY_PHI", "RUNAWAY_STATE"]
+__all__ = ["NAMES", "JOINT", "Estimator", "register", "variant", "run_filter", "holdout_points", "RUNAWAY_PHI",
+           "RUNAWAY_STATE"]
 
 log = logging.getLogger(__name__)
 
@@ -113,9 +114,20 @@ def block_diag_R(cov_k: np.ndarray) -> np.ndarray:
     return R.reshape(3 * P, 3 * P)
 
 
+def holdout_points(candidates, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """The held-out points: ``round(fraction * n)`` of the ``n`` candidates (indices into a measurement set, in
+    increasing order) drawn without replacement by ``rng``, sorted. Every estimator given the same candidates,
+    fraction and seed holds out the same points."""
+    c = np.sort(np.asarray(candidates, int))
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(f"holdout: a fraction in [0, 1) expected, got {fraction}")
+    n = int(round(fraction * c.size))
+    return np.sort(rng.choice(c, size=n, replace=False)) if n else np.zeros(0, int)
+
+
 def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u, trans, Q_n, *,
                joseph: bool = False, adapt=None, progress: Callable[[int, int], None] | None = None,
-               meta: dict | None = None) -> EstimateSet:
+               meta: dict | None = None, heldout=None) -> EstimateSet:
     """The frame loop shared by every estimator.
 
     Per frame k: ``k > 0``: predict (``est.predict``), constrain; record the one-step prediction
@@ -136,6 +148,9 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     adapt : tracker.adaptive.NoiseAdaptation, optional
         Sets the parameters' random walk and the scale of the measurement covariances from the innovations so far.
     meta : dict                     merged into the estimate file's meta
+    heldout : (H,) int, optional    points (indices into ``meas``, among ``keep``) left out of every update: their
+        one-step predictions and innovations are recorded as for the others (the model's prediction of a point it
+        never saw); ``meta.heldout_points`` lists their ids
 
     Raises
     ------
@@ -151,6 +166,9 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     y_all = meas.positions[:, keep, :].reshape(K, -1)
     cov_all = meas.covariances[:, keep]
     P_all = meas.n_points
+    held_rows = np.zeros(y_all.shape[1], bool)
+    if heldout is not None and len(heldout):
+        held_rows = np.repeat(np.isin(np.asarray(keep), np.asarray(heldout)), 3)
 
     state_mean = np.full((K, n_l), np.nan)
     state_var = np.full((K, n_l), np.nan)
@@ -176,6 +194,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         if adapt is not None:
             md["adaptation"] = adapt.summary()
         md["log_likelihood"] = float(loglik[1:done].sum())   # innovations of frames 1 .. done-1
+        if held_rows.any():
+            md["heldout_points"] = [int(i) for i in np.asarray(meas.point_ids)[np.asarray(heldout)]]
         return EstimateSet(est.name, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std,
                            predictions, innovations, nis, dof, trunc, step_time, done, meta=md, phi_mean=phi_mean,
                            phi_cov=phi_cov, filtered=filtered)
@@ -200,7 +220,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             R = block_diag_R(cov_all[k])
             if adapt is not None:
                 R = adapt.measurement_scale(k) * R
-            res = update(state, y_all[k], Hz, R, offset, joseph=joseph)
+            y_k = np.where(held_rows, np.nan, y_all[k]) if held_rows.any() else y_all[k]
+            res = update(state, y_k, Hz, R, offset, joseph=joseph)
             state = res.state
             counters["jitter"] += res.jitter_events
             _check_runaway(state, M, "update")

@@ -378,7 +378,7 @@ def _theta_and_std(space: ParameterSpace, mean_n, cov_nn):
 def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *, theta0=None, prior_std=None,
               options: JointOptions | None = None, points: ObservedPoints | None = None,
               progress: Callable[[int, int], None] | None = None, references: str = "fixed",
-              adaptation=None) -> EstimateSet:
+              adaptation=None, heldout=None) -> EstimateSet:
     """Run the GE, the joint UKF or the joint EKF over a measurement set.
 
     Parameters
@@ -394,6 +394,8 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     references : {'fixed', 'estimate'}
         ``estimate``: the static reference states of :mod:`tracker.reference` join the kinematic state (their
         means and variances are in ``state_mean`` / ``state_var`` after the model's ``2 r`` columns).
+    heldout : (H,) int, optional
+        Points (indices into ``meas``) left out of every update (:func:`tracker.estimators.holdout_points`).
     adaptation : tracker.adaptive.AdaptationOptions, optional
         Estimate the parameters' random walk and the model error added to R from the innovations
         (:mod:`tracker.adaptive`); None keeps the model file's random walk and the measurement covariances.
@@ -437,4 +439,4 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
 
         adapt = NoiseAdaptation(M, dt, prior.Q_n, adaptation)
     return run_filter(filt, meas, prior.state, obs.H, obs.reference, pts.keep, u, trans, prior.Q_n,
-                      joseph=options.joseph, progress=progress, meta=meta, adapt=adapt)
+                      joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout)

@@ -279,7 +279,9 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
     Returns
     -------
     dict with, in SI units: ``completed_steps``, ``prediction_error_mean_m`` / ``_std_m`` / ``_rms_m`` /
-    ``_count`` (steps k ≥ 1, seen points), ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the filtered
+    ``_count`` (steps k ≥ 1, seen points, the held-out points of ``meta['heldout_points']`` excluded),
+    ``heldout_prediction_error_mean_m`` / ``_rms_m`` / ``_count`` and ``heldout_points`` (the same over the
+    held-out points only; None / 0 without), ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the filtered
     positions ``est.filtered`` against the truth: steps k ≥ 1, seen points; NaN without truth or without
     ``filtered`` in the file), ``prediction_truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the one-step
     predictions against the truth, over the same (k, p); NaN without truth), ``nis_mean``,
@@ -292,14 +294,22 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
     """
     c = completed(est)
     norms = error_norms(np.asarray(est.innovations)[:c])
+    held = np.isin(np.asarray(est.point_ids), np.asarray(est.meta.get("heldout_points") or [], dtype=np.int64))
+    held_norms = np.where(held[None, :], norms, np.nan)
+    norms = np.where(held[None, :], np.nan, norms)      # the prediction error of the points used in the updates
     mean, var, count = per_step_stats(norms)
     pooled = pooled_stats(norms[1:])
+    hp = pooled_stats(held_norms[1:]) if held.any() else {"mean": None, "rms": None, "count": 0}
     out = {
         "completed_steps": c,
         "prediction_error_mean_m": pooled["mean"],
         "prediction_error_std_m": pooled["std"],
         "prediction_error_rms_m": pooled["rms"],
         "prediction_error_count": pooled["count"],
+        "heldout_prediction_error_mean_m": hp["mean"],
+        "heldout_prediction_error_rms_m": hp["rms"],
+        "heldout_prediction_error_count": hp["count"],
+        "heldout_points": int(held.sum()),
     }
     none = {"mean": np.nan, "std": np.nan, "rms": np.nan}
     f_mean = f_var = p_mean = p_var = np.full(c, np.nan)

@@ -133,13 +133,15 @@ class KalmanFilter(Estimator):
 
 
 def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=False,
-               points: ObservedPoints | None = None, references: str = "fixed", adaptation=None) -> EstimateSet:
+               points: ObservedPoints | None = None, references: str = "fixed", adaptation=None,
+               heldout=None) -> EstimateSet:
     """Kalman filter with fixed ``theta`` (default: the model file's) over a measurement set (the ``kf`` variant
     of :mod:`tracker.estimators`, its frame loop :func:`tracker.estimators.run_filter`).
 
     ``references='estimate'`` appends the static reference states (:mod:`tracker.reference`) to the state;
     ``adaptation`` (:class:`tracker.adaptive.AdaptationOptions`) adds the model error estimated from the
-    innovations to R (the KF has no random walk to adapt)."""
+    innovations to R (the KF has no random walk to adapt); ``heldout`` (indices into ``meas``) are left out of
+    every update (:func:`tracker.estimators.run_filter`)."""
     from .reference import augment_observation, augment_transition, reference_block
 
     check_references(references)
@@ -167,5 +169,5 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
 
         adapt = NoiseAdaptation(0, dt, np.zeros((0, 0)), adaptation)
     return run_filter(kf, meas, GaussianState(mean0, cov0), obs.H, obs.reference, pts.keep, u, trans,
-                      np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt)
+                      np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt, heldout=heldout)
 

@@ -70,3 +70,28 @@ def test_harmonic_without_periodic_motion_exits_1(tmp_path, meas_file):
                                   "-o", str(tmp_path / "h.npz")])
     assert r.exit_code == 1 and "no heart rate" in r.output, r.output
     assert not (tmp_path / "h.npz").exists()
+
+
+def test_holdout_selects_the_same_tracks_for_every_estimator(tmp_path, meas_file):
+    ids = {}
+    for name in ("kf", "ge", "hold"):
+        out = str(tmp_path / f"{name}.npz")
+        r = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", name, "--holdout", "0.3",
+                                      "--seed", "7", "-o", out, "--json"])
+        assert r.exit_code == 0, r.output
+        assert json.loads(r.stdout)["heldout_points"] == 4                     # round(0.3 * 14)
+        e = read_estimates(out)
+        ids[name] = e.meta["heldout_points"]
+        assert e.meta["holdout"] == 0.3 and e.meta["seed"] == 7
+    assert ids["kf"] == ids["ge"] == ids["hold"]
+    rep = CliRunner().invoke(main, ["report", *(str(tmp_path / f"{n}.npz") for n in ("ge", "kf", "hold")),
+                                    "-o", str(tmp_path / "rep"), "--json"])
+    est = json.loads(rep.stdout)["estimators"]
+    assert all(est[n]["heldout_points"] == 4 and est[n]["heldout_prediction_error_mean_m"] > 0 for n in est)
+    for bad in ("1.0", "-0.1"):
+        r = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--holdout", bad, "-o",
+                                      str(tmp_path / "x.npz")])
+        assert r.exit_code == 2 and "--holdout" in r.output
+    r = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--holdout", "0.01", "-o",
+                                  str(tmp_path / "x.npz")])
+    assert r.exit_code == 2 and "leave some in and some out" in r.output
