@@ -128,8 +128,3 @@ class NoiseAdaptation:
                 "measurement_scale_median": float(np.median(lam)) if lam.size else 1.0,
                 "measurement_scale_min": float(lam.min()) if lam.size else 1.0,
                 "measurement_scale_max": float(lam.max()) if lam.size else 1.0}
-
-    def traces(self) -> dict:
-        """Per-frame levels (K,) and (K, M) as recorded, for plots and tests."""
-        return {"measurement_scale": np.array(self.lam_history),
-                "random_walk_var": np.array(self.q_history).reshape(len(self.q_history), self.M)}

@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg as sla
 
+from .estimator_names import JOINT, MODEL, NAMES  # noqa: F401  (re-exported; the names live in a light module)
 from .kalman import GaussianState, update
 from .measurements import EstimateSet
 
@@ -36,8 +37,6 @@ __all__ = ["NAMES", "JOINT", "Estimator", "register", "variant", "run_filter", "
            "RUNAWAY_STATE"]
 
 log = logging.getLogger(__name__)
-
-from .estimator_names import JOINT, MODEL, NAMES  # noqa: E402, F401  (the names live in a light module)
 
 _VARIANTS: dict[str, type] = {}
 
