@@ -30,8 +30,21 @@ MAX_STARTS = 1000
 @seed_opt
 @click.option("--max-evaluations", type=Int(1, MAX_COUNT), default=None,
               help="Residual evaluations per start (least_squares max_nfev; default 100 per parameter).")
+@click.option("--input", "input_mode", type=click.Choice(("auto", "recorded", "estimate")), default="auto",
+              show_default=True,
+              help="The model's pressure: 'recorded' from the measurement file; 'estimate' from the tracks (heart "
+                   "rate from their spectrum, the input's harmonics and a rigid motion fitted); 'auto': estimate "
+                   "when the file has no pressure column.")
+@click.option("--harmonics", type=Int(1, 10), default=None,
+              help="Harmonics of the heart rate in an estimated input (default 3).")
+@click.option("--patch", "patch_mode", type=click.Choice(("auto", "model", "observed")), default="auto",
+              show_default=True,
+              help="Rig-frame files: 'model' places the model file's patch by its surface and motion; 'observed' "
+                   "fits the patch's extent, pose and curvature to the observed surface; 'auto': observed when the "
+                   "input is estimated.")
 @json_opt
-def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, as_json):
+def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, patch_mode,
+        as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -54,13 +67,25 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
     m = load_model(model_file)
     if not m.config.estimation.estimate:
         raise BadInput(f"{model_file}: estimation.estimate is empty; nothing to fit")
-    registration = None
+    estimate_input = _input_mode(input_mode, meas, m, measurements)
+    if harmonics is not None and not estimate_input:
+        raise BadInput("--harmonics applies to an estimated input (--input estimate) only")
+    if patch_mode == "observed" and meas.frame != "rig":
+        raise BadInput(f"--patch observed: {measurements} is already in the patch frame (registered)")
+    observed = meas.frame == "rig" and (patch_mode == "observed" or (patch_mode == "auto" and estimate_input))
+    registration = estimated_input = None
     try:
         with threadpool_limits(1):
-            if meas.frame == "rig":
+            if observed:
+                m, meas, registration = _observed_patch(meas, m, output)
+            elif meas.frame == "rig":
                 meas, registration = _register(meas, m, output)
-            result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
-                             max_evaluations=max_evaluations)
+            if estimate_input:
+                result, estimated_input = _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations,
+                                                              harmonics)
+            else:
+                result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
+                                 max_evaluations=max_evaluations)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     if not result.converged:
@@ -68,7 +93,7 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
     meta = {"producer": "heartcv fit", "measurements": str(measurements), "model": str(model_file),
             "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)},
             "seed": seed}
-    result = replace(result, registration=registration)
+    result = replace(result, registration=registration, estimated_input=estimated_input)
     write_parameters(output, result, meta)
     summary = _summary(result, output)
     if as_json:
@@ -95,6 +120,88 @@ def _register(rig_meas, m, output):
         raise StageFailed(f"registration onto the patch did not converge ({reg.message}); nothing written to "
                           f"{output}")
     return meas, registration_to_dict(reg, rig_meas)
+
+
+def _input_mode(mode, meas, m, measurements) -> bool:
+    """Whether the input is estimated (``--input``); BadInput for a model without a pressure to estimate or a
+    recorded input that is missing."""
+    has = "pressure" in m.input_names and "pressure" in meas.input_names
+    if mode == "recorded" or (mode == "auto" and (has or "pressure" not in m.input_names)):
+        return False
+    if "pressure" not in m.input_names:
+        raise BadInput("--input estimate: the model file has no pressure input to estimate (inputs.pressure)")
+    if mode == "auto":
+        log.info("%s has no pressure column: the input is estimated (heart rate, harmonics, rigid motion)",
+                 measurements)
+    return True
+
+
+def _observed_patch(rig_meas, m, output):
+    """The patch fitted to the observed surface: ``(model on that patch, patch-frame set, registration entry)``."""
+    from dataclasses import replace as dc_replace
+
+    from heartcv.tracker.model import build_model
+    from heartcv.tracker.patch_fit import fit_observed_patch, geometry_to_dict
+    from heartcv.tracker.registration import registration_to_dict, to_patch_frame
+
+    op = fit_observed_patch(rig_meas, m.config.geometry)
+    info = op.info()
+    log.info("patch fitted to the observed surface: %.1f x %.1f mm, radii %.0f and %.0f mm, %d points on it, %d "
+             "dropped, surface RMS %.2f mm", 1e3 * info["length_m"], 1e3 * info["width_m"],
+             1e3 * info["radius_long_m"], 1e3 * info["radius_circ_m"], info["points_on_patch"],
+             info["points_dropped"], 1e3 * info["rms_m"])
+    model = build_model(dc_replace(m.config, geometry=op.geometry))
+    reg = registration_to_dict(op.registration, rig_meas)
+    reg["geometry"] = geometry_to_dict(op.geometry)
+    reg["patch"] = info
+    return model, to_patch_frame(rig_meas, op.registration), reg
+
+
+def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics):
+    """The fit with an estimated input (heart rate from the tracks, harmonics and rigid motion profiled):
+    ``(FitResult, estimated_input entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
+    from dataclasses import replace as dc_replace
+
+    import numpy as np
+
+    from heartcv.tracker.fit import UnknownInputProblem
+    from heartcv.tracker.fit import fit as run_fit
+    from heartcv.tracker.model import build_model
+    from heartcv.tracker.unknown_input import HARMONICS, NoHeartbeat, estimate_heart_rate, input_block_from_fit
+
+    H = HARMONICS if harmonics is None else harmonics
+    K = meas.n_frames if frames is None else min(frames, meas.n_frames)
+    try:
+        hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H)
+    except NoHeartbeat as exc:
+        raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written") from None
+    log.info("heart rate %.4g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's median",
+             hr.frequency_hz, 60 * hr.frequency_hz, hr.beats, hr.peak_ratio)
+    cfg = m.config
+    held = [n for n in cfg.estimation.estimate if n == "E"]
+    fit_model = m
+    if held and len(cfg.estimation.estimate) > 1:
+        # the input's scale and E are not separable without a recorded pressure: E stays at the model's value
+        fit_model = build_model(dc_replace(cfg, estimation=dc_replace(
+            cfg.estimation, estimate=tuple(n for n in cfg.estimation.estimate if n != "E"))))
+        log.info("E held at the model file's %.4g Pa: without a recorded pressure only E/scale is determined",
+                 cfg.theta[3])
+    column = m.input_names.index("pressure")
+    prob = UnknownInputProblem(fit_model, meas, hr.frequency_hz, H, column, frames=K)
+    result = run_fit(fit_model, meas, np.random.default_rng(seed), starts=starts, max_evaluations=max_evaluations,
+                     problem=prob)
+    if not result.converged:
+        return result, None
+    alpha, alpha_std, rigid = prob.input_solution(result.theta, result.reduced_chi2)
+    block = input_block_from_fit(hr.frequency_hz, H, prob.dt, len(m.input_names), column, alpha, alpha_std,
+                                 rigid[:, :3], meas.times[:K])
+    entry = block.to_dict()
+    entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "bpm": 60 * hr.frequency_hz, "peak_hz": hr.peak_hz,
+                             "peak_ratio": hr.peak_ratio, "beats": hr.beats, "points": hr.points},
+                 amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
+                 held_fixed=["E"] if fit_model is not m else [], fit_frames=K,
+                 translation_std_m=[float(v) for v in np.std(rigid[:, :3], axis=0)])
+    return result, entry
 
 
 def _summary(result, output) -> dict:
@@ -124,6 +231,9 @@ def _summary(result, output) -> dict:
         "at_bound": list(result.at_bound),
         "poorly_determined": list(result.poorly_determined),
         "registration_rms_m": None if result.registration is None else result.registration["rms_m"],
+        "patch": None if result.registration is None else result.registration.get("patch"),
+        "heart_rate_hz": None if result.estimated_input is None else result.estimated_input["frequency_hz"],
+        "input_amplitudes_pa": None if result.estimated_input is None else result.estimated_input["amplitudes_pa"],
         "output": output,
     }
     return summary

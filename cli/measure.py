@@ -226,7 +226,8 @@ def _inputs(path: Path, times, required, times_from=None):
     if not path.is_file():
         if required:
             raise InputError(path, "no such inputs file", "--inputs")
-        log.warning("no inputs file (%s): the measurement file has no inputs (heartcv track needs pressure)", path)
+        log.warning("no inputs file (%s): the measurement file has no inputs (heartcv fit will estimate the input "
+                    "from the tracks: heart rate, harmonics, rigid motion)", path)
         return (), (), np.zeros((len(times), 0))
     cols, _ = read_inputs_csv_columns(path)
     try:

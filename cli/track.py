@@ -105,8 +105,11 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     meta = {"producer": "heartcv track", "model": str(model_file),
             "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
     theta0 = prior_std = None
+    input_block = None
     if fitted is not None:
-        meas = _with_params(m, meas, fitted, measurements, params_file, model_file)
+        m = _fitted_patch(m, fitted, params_file)
+        input_block = _input_block(m, meas, fitted, params_file, measurements)
+        meas = _with_params(m, meas, fitted, measurements, params_file, model_file, input_block)
         meta["params"] = str(params_file)
         meta["inputs_hash"]["params"] = file_hash(params_file)
         if isinstance(meas.meta.get("registration"), dict):     # rig-frame file: where the patch frame lies
@@ -126,7 +129,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         references = "estimate" if str(meas.meta.get("reference", "")).startswith(FIT_REFERENCES) else "fixed"
     try:
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
-                   _adaptation(adapt, adapt_random_walk, adapt_window), heldout)
+                   _adaptation(adapt, adapt_random_walk, adapt_window), heldout, input_block)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -200,7 +203,51 @@ def _joint_options(m, model_file, estimator, nodes, truncation, joseph):
     return JointOptions.from_config(m.config, baseline_truncation=truncation, joseph=joseph)
 
 
-def _with_params(m, meas, fitted, measurements, params_file, model_file):
+def _fitted_patch(m, fitted, params_file):
+    """The model on the patch the fit fitted to the observed surface (registration.geometry), else ``m``."""
+    from dataclasses import replace
+
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.model import build_model
+    from heartcv.tracker.patch_fit import geometry_from_dict
+
+    geometry = (fitted.registration or {}).get("geometry")
+    if geometry is None:
+        return m
+    try:
+        g = geometry_from_dict(geometry)
+    except ValueError as exc:
+        raise InputError(params_file, str(exc), "registration.geometry") from None
+    log.info("patch fitted to the observed surface: %.1f x %.1f mm", 1e3 * g.length, 1e3 * g.width)
+    return build_model(replace(m.config, geometry=g))
+
+
+def _input_block(m, meas, fitted, params_file, measurements):
+    """The estimated input of the parameters file at the measurement file's frame interval, or None."""
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.tracking import frame_interval
+    from heartcv.tracker.unknown_input import InputBlock
+
+    entry = fitted.estimated_input
+    if entry is None:
+        return None
+    try:
+        dt = frame_interval(m, meas)
+    except InputError as exc:
+        raise exc.in_file(measurements) from None
+    try:
+        block = InputBlock.from_dict(entry, dt)
+    except ValueError as exc:
+        raise InputError(params_file, str(exc), "estimated_input") from None
+    if block.n_u != len(m.input_names):
+        raise InputError(params_file, f"fitted for {block.n_u} model inputs, the model has {len(m.input_names)}",
+                         "estimated_input.n_u")
+    log.info("estimated input: heart rate %.4g Hz, %d harmonics, rigid motion (%d states)", block.frequency_hz,
+             block.harmonics, block.size)
+    return block
+
+
+def _with_params(m, meas, fitted, measurements, params_file, model_file, input_block=None):
     """The measurement set as the fit saw it: the stored registration applied to a rig-frame file, whose
     birth-frame references are then replaced by the fit's undeformed offsets."""
     from heartcv.tracker.files import InputError
@@ -215,7 +262,13 @@ def _with_params(m, meas, fitted, measurements, params_file, model_file):
         if fitted.registration is not None:
             log.warning("%s holds a registration but %s is in the patch frame: not applied", params_file,
                         measurements)
-        return meas
+        if input_block is None:
+            return meas
+        # an estimated input has no mean (the offsets took it): references from the fit's offsets
+        try:
+            return undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block)
+        except InputError as exc:
+            raise exc.in_file(measurements) from None
     if fitted.registration is None:
         raise BadInput(f"{measurements}: rig-frame measurements, but {params_file} holds no registration (it was "
                        "fitted to patch-frame measurements)")
@@ -225,7 +278,7 @@ def _with_params(m, meas, fitted, measurements, params_file, model_file):
         raise exc.in_file(params_file) from None
     # measured references are birth-frame (deformed) positions: use the fit's undeformed offsets
     try:
-        meas = undeformed_references(m, meas, fitted.theta, fitted.frames)
+        meas = undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block)
     except InputError as exc:
         raise exc.in_file(measurements) from None
     if meas.meta.get("late_points"):
@@ -256,7 +309,7 @@ def _adaptation(adapt, random_walk, window):
 
 
 def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation,
-         heldout=None):
+         heldout=None, input_block=None):
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker.joint import run_joint
@@ -265,12 +318,13 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
     with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
         if estimator == "kf":
             return run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph,
-                              references=references, adaptation=adaptation, heldout=heldout)
+                              references=references, adaptation=adaptation, heldout=heldout,
+                              input_block=input_block)
         with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
                 if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
             return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
                              progress=lambda done, total: bar.update(1), references=references,
-                             adaptation=adaptation, heldout=heldout)
+                             adaptation=adaptation, heldout=heldout, input_block=input_block)
 
 
 def _diverged(exc, estimator, meas, meta, part, output) -> str:

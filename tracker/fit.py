@@ -38,7 +38,8 @@ from .model import PatchModel
 from .params import NAMES, ParameterSpace
 from .tracking import ObservedPoints, frame_interval, locate_points
 
-__all__ = ["FitProblem", "FitResult", "fit", "tracking_prior", "undeformed_references", "S_LIMIT", "SINGULAR_RTOL"]
+__all__ = ["FitProblem", "UnknownInputProblem", "FitResult", "fit", "tracking_prior", "undeformed_references",
+           "S_LIMIT", "SINGULAR_RTOL"]
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +78,7 @@ class FitProblem:
     """
 
     def __init__(self, model: PatchModel, meas: MeasurementSet, frames: int | None = None,
-                 points: ObservedPoints | None = None):
+                 points: ObservedPoints | None = None, inputs=None, translation=None):
         if frames is not None and int(frames) < 2:
             raise ValueError(f"frames: at least 2 frames are needed for a fit, got {frames}")
         K = meas.n_frames if frames is None else min(int(frames), meas.n_frames)
@@ -86,8 +87,8 @@ class FitProblem:
         pts = points or locate_points(model, meas)
         self.model = model
         self.dt = frame_interval(model, meas)
-        self.inputs = meas.input_columns(model.input_names)[:K]
-        trans = meas.translation()[:K]
+        self.inputs = (meas.input_columns(model.input_names) if inputs is None else np.asarray(inputs, float))[:K]
+        trans = (meas.translation() if translation is None else np.asarray(translation, float))[:K]
         y = meas.positions[:K, pts.keep]
         seen = np.isfinite(y).all(axis=2)
         use = seen.sum(axis=0) >= 2
@@ -119,11 +120,15 @@ class FitProblem:
     # -- model side ------------------------------------------------------------------------------
     def states(self, theta) -> np.ndarray:
         """Deterministic kinematic states (K, 2r) from equilibrium at ``u_0``."""
+        return self.simulate(theta, self.inputs[:, :, None])[:, :, 0]
+
+    def simulate(self, theta, U) -> np.ndarray:
+        """Deterministic kinematic states (K, 2r, J) for J input sequences U (K, n_u, J), each from the
+        equilibrium at its first value."""
         sysd = self.model.system(theta, self.dt)
-        u = self.inputs
-        drive = u[:-1] @ sysd.B0.T + u[1:] @ sysd.B1.T
-        X = np.empty((self.frames, self.model.state_dim))
-        x = self.model.static_state(theta, u[0])
+        drive = np.einsum("ij,kjl->kil", sysd.B0, U[:-1]) + np.einsum("ij,kjl->kil", sysd.B1, U[1:])
+        X = np.empty((self.frames, self.model.state_dim, U.shape[2]))
+        x = np.stack([self.model.static_state(theta, U[0, :, j]) for j in range(U.shape[2])], axis=1)
         X[0] = x
         A = sysd.A
         for k in range(1, self.frames):
@@ -177,6 +182,145 @@ class FitProblem:
         return float(r @ r)
 
 
+class UnknownInputProblem(FitProblem):
+    """The fit of a recording without the model's pressure (docs/model.md "Unknown input"): the input is
+    ``u(t) = sum_h a_h cos(2 pi h f t) + b_h sin(2 pi h f t)`` on the model's input ``column`` (t from the first
+    frame, the heart rate ``f`` given) and the observed surface moves rigidly by an unknown translation ``tau_k``
+    per frame besides. For a given theta the states are linear in the amplitudes ``alpha = [a_1, b_1, ...]``, so
+    ``alpha``, ``tau_k`` (``tau_0 = 0``: the offsets take the common part) and the offsets ``m_p`` are all profiled
+    out by one generalised least-squares solve: the offsets eliminated per point (block diagonal), then the
+    reduced normal equations of ``[tau_1 .. tau_{K-1}, alpha]`` (size ``3 (K - 1) + 2 H``) solved densely.
+
+    ``dof = 3 n_obs - 3 P - 3 (K - 1) - 2 H`` (before the estimated parameters). ``rotation=True`` adds a small
+    rotation per frame about the patch origin (6 rigid unknowns per frame; the estimators carry the translation
+    only).
+    """
+
+    def __init__(self, model: PatchModel, meas: MeasurementSet, frequency_hz: float, harmonics: int, column: int,
+                 frames: int | None = None, points: ObservedPoints | None = None, rotation: bool = False):
+        from .unknown_input import harmonic_basis
+
+        n_u = len(model.input_names)
+        if not 0 <= column < n_u:
+            raise ValueError(f"column: an input of the model expected (0..{n_u - 1}), got {column}")
+        known = np.zeros((meas.n_frames, n_u))
+        for j, name in enumerate(model.input_names):
+            if j != column and name in meas.input_names:
+                known[:, j] = meas.input_columns([name])[:, 0]
+        super().__init__(model, meas, frames, points, inputs=known, translation=np.zeros((meas.n_frames, 3)))
+        K = self.frames
+        self.frequency_hz = float(frequency_hz)
+        self.harmonics = int(harmonics)
+        self.column = int(column)
+        self.basis = harmonic_basis(meas.times[:K] - meas.times[0], frequency_hz, harmonics)  # (K, 2H)
+        U = np.repeat(self.inputs[:, :, None], 1 + self.basis.shape[1], axis=2)
+        U[:, column, 1:] += self.basis
+        self._U = U
+        self._frame_idx_obs = self._frame_idx
+        self.rotation = bool(rotation)
+        self.dof = 3 * self.n_obs - 3 * self.n_points - (6 if rotation else 3) * (K - 1) - 2 * self.harmonics
+        y = meas.positions[:K][:, self.keep]
+        self._lever = np.nanmedian(y, axis=0)  # the points' positions (lever arms of the small rotations)
+        self._rigid = self._rigid_design()
+
+    def _design(self, theta):
+        """Model displacements at the seen observations: known-input part (n_obs, 3) and per amplitude
+        (n_obs, 3, 2H)."""
+        X = self.simulate(theta, self._U)  # (K, 2r, 1 + 2H)
+        r = self.model.r
+        D = np.einsum("krj,pcr->kpcj", X[:, :r], self.H_q.reshape(self.n_points, 3, r))  # (K, P, 3, J)
+        D = D[self.seen]  # (n_obs, 3, J)
+        return D[:, :, 0], D[:, :, 1:]
+
+    def _rigid_design(self) -> np.ndarray:
+        """Per observation (n_obs, 3, 3) or (n_obs, 3, 6) with ``rotation``: displacement per translation (and
+        small rotation about the patch origin) of the frame, ``[I, -[X_p]x]`` with ``X_p`` the point's position."""
+        X = self._lever[self._point_idx]
+        G = np.zeros((X.shape[0], 3, 6 if self.rotation else 3))
+        G[:, :, :3] = np.eye(3)
+        if not self.rotation:
+            return G
+        G[:, 0, 4], G[:, 0, 5] = X[:, 2], -X[:, 1]
+        G[:, 1, 3], G[:, 1, 5] = -X[:, 2], X[:, 0]
+        G[:, 2, 3], G[:, 2, 4] = X[:, 1], -X[:, 0]
+        return G
+
+    def solve(self, theta):
+        """The profiled ``(alpha (2H,), rigid (K, 3) translation (K, 6 with rotation vector), offsets (P, 3),
+        e (n_obs, 3) residual before whitening, reduced normal matrix)`` at theta."""
+        d0, J = self._design(np.asarray(theta, float))
+        e = self.y - d0
+        W = self._R_inv
+        K, P, nA = self.frames, self.n_points, J.shape[2]
+        fi, pi = self._frame_idx, self._point_idx
+        nr = self._rigid.shape[2]
+        nt = nr * (K - 1)
+        nb = nt + nA
+        Gr = self._rigid
+        WJ = np.einsum("nij,nja->nia", W, J)  # (n_obs, 3, nA)
+        We = np.einsum("nij,nj->ni", W, e)
+        WG = np.einsum("nij,njb->nib", W, Gr)  # (n_obs, 3, 6)
+        # per point: B_p = sum_n W_n X_n (3, nb), b_p = sum_n W_n e_n
+        B = np.zeros((P, 3, nb))
+        tau_obs = fi > 0
+        cols = nr * (fi[tau_obs] - 1)
+        for c in range(nr):
+            np.add.at(B, (pi[tau_obs], slice(None), cols + c), WG[tau_obs][:, :, c])
+        np.add.at(B[:, :, nt:], pi, WJ)
+        b = np.zeros((P, 3))
+        np.add.at(b, pi, We)
+        # sum_n X_n^T W_n X_n
+        S = np.zeros((nb, nb))
+        GWG = np.zeros((K, nr, nr))
+        np.add.at(GWG, fi, np.einsum("nia,nib->nab", Gr, WG))
+        for k in range(1, K):
+            S[nr * (k - 1):nr * k, nr * (k - 1):nr * k] = GWG[k]
+        TA = np.zeros((K, nr, nA))
+        np.add.at(TA, fi, np.einsum("nia,nib->nab", Gr, WJ))
+        S[:nt, nt:] = TA[1:].reshape(nt, nA)
+        S[nt:, :nt] = S[:nt, nt:].T
+        S[nt:, nt:] = np.einsum("nia,nib->ab", J, WJ)
+        rhs = np.zeros(nb)
+        Te = np.zeros((K, nr))
+        np.add.at(Te, fi, np.einsum("nia,ni->na", Gr, We))
+        rhs[:nt] = Te[1:].reshape(-1)
+        rhs[nt:] = np.einsum("nia,ni->a", J, We)
+        GB = np.einsum("pij,pjb->pib", self._G_inv, B)
+        S -= B.reshape(3 * P, nb).T @ GB.reshape(3 * P, nb)
+        rhs -= np.einsum("pib,pi->b", GB, b)
+        S = 0.5 * (S + S.T)
+        d = 1.0 / np.sqrt(np.maximum(np.diag(S), 1e-300))  # Jacobi scaling: metres, radians and Pa differ by 1e9
+        beta = d * sla.lstsq(S * np.outer(d, d), rhs * d, cond=1e-12)[0]
+        rigid = np.zeros((K, nr))
+        rigid[1:] = beta[:nt].reshape(K - 1, nr)
+        alpha = beta[nt:]
+        m = np.einsum("pij,pj->pi", self._G_inv, b - np.einsum("pib,b->pi", B, beta))
+        res = e - np.einsum("nia,na->ni", Gr, rigid[fi]) - np.einsum("nia,a->ni", J, alpha) - m[pi]
+        return alpha, rigid, m, res, S
+
+    def residuals(self, theta) -> np.ndarray:
+        alpha, tau, m, res, _ = self.solve(theta)
+        return np.einsum("nij,nj->ni", self.L_inv, res).ravel()
+
+    def offsets(self, theta, relative_model_error: float = 0.0) -> np.ndarray:
+        """The profiled offsets (P_used, 3) (the model-error weighting of :meth:`FitProblem.offsets` is not
+        applied: the rigid motion and the input are profiled with the measurement weights)."""
+        return self.solve(theta)[2]
+
+    def input_solution(self, theta, reduced_chi2: float = 1.0):
+        """``(alpha, alpha_std, tau)`` at theta: the amplitudes' standard deviations from the reduced normal
+        matrix, scaled by the reduced chi-square when above 1."""
+        alpha, tau, _, _, S = self.solve(theta)
+        nA = alpha.size
+        try:
+            d = 1.0 / np.sqrt(np.maximum(np.diag(S), 1e-300))
+            cov = (np.linalg.inv(S * np.outer(d, d)) * np.outer(d, d))[-nA:, -nA:]
+            sd = np.sqrt(np.clip(np.diag(cov), 0, None) * max(reduced_chi2, 1.0))
+        except np.linalg.LinAlgError:
+            sd = np.full(nA, np.nan)
+        return alpha, sd, tau
+
+
 @dataclass(frozen=True)
 class FitResult:
     """Outcome of :func:`fit` (and the content of a parameters file, docs/formats.md §12).
@@ -203,7 +347,10 @@ class FitResult:
     frames, points, observations : int   frames, points and point-frames used
     starts : tuple of dict            per start: theta0, theta, cost, status, evaluations, message
     at_bound : tuple of str           estimated parameters at a bound of the box at the solution
-    registration : dict or None       rig-to-patch registration applied before the fit (CLI)
+    registration : dict or None       rig-to-patch registration applied before the fit (CLI); with ``geometry``
+                                      when the patch was fitted to the observed surface
+    estimated_input : dict or None    the estimated input (:class:`tracker.unknown_input.InputBlock` entry plus the
+                                      heart rate and amplitudes) when none was recorded
     meta : dict                       provenance (producer, inputs_hash, seed, ...)
     """
 
@@ -231,6 +378,7 @@ class FitResult:
     registration: dict | None = None
     meta: dict = field(default_factory=dict)
     covariance_kind: str = "model"
+    estimated_input: dict | None = None
 
     def __post_init__(self):
         if self.covariance_kind not in ("model", "cluster-robust"):
@@ -558,7 +706,7 @@ def _subset_points(meas: MeasurementSet, idx) -> MeasurementSet:
 
 
 def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None,
-                          relative_model_error: float = REFERENCE_MODEL_ERROR) -> MeasurementSet:
+                          relative_model_error: float = REFERENCE_MODEL_ERROR, input_block=None) -> MeasurementSet:
     """The measurement set with each point's ``reference`` replaced by its undeformed position at ``theta``.
 
     A measured point's reference (``heartcv measure``) is its position in the frame it was born in, which is
@@ -577,10 +725,23 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
     structure as the others' (the span the reference states of :mod:`tracker.reference` correct). Points off the
     patch or seen in fewer than two frames of the whole sequence are dropped; ``meta['dropped_points']`` lists
     their ids and ``meta['late_points']`` those whose offsets came from after the window.
+
+    With an ``input_block`` (a recording without pressure, :mod:`tracker.unknown_input`) the window's offsets are
+    those of :class:`UnknownInputProblem` (input and rigid motion profiled, no model-error weighting) and the late
+    points' those under the block's mean input and rigid motion continued over the sequence.
     """
     import dataclasses
 
-    prob = FitProblem(model, meas, frames)
+    late_kw = {}
+    if input_block is None:
+        prob = FitProblem(model, meas, frames)
+    else:
+        from .unknown_input import known_inputs
+
+        prob = UnknownInputProblem(model, meas, input_block.frequency_hz, input_block.harmonics, input_block.column,
+                                   frames)
+        late_kw = {"inputs": known_inputs(meas, model, input_block) + input_block.mean_inputs(meas.n_frames),
+                   "translation": input_block.mean_translation(meas.n_frames)}
     keep = prob.keep
     offsets = prob.offsets(np.asarray(theta, float), relative_model_error)
     late = np.zeros(0, np.int64)
@@ -590,7 +751,7 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
         candidates = candidates[seen]
         if candidates.size:
             sub = _subset_points(meas, candidates)
-            late_prob = FitProblem(model, sub, None)
+            late_prob = FitProblem(model, sub, None, **late_kw)
             late = candidates[late_prob.keep]
             late_off = late_prob.offsets(np.asarray(theta, float), relative_model_error)
             order = np.argsort(np.r_[keep, late], kind="stable")

@@ -289,7 +289,8 @@ def read_study(path) -> tuple[dict, dict]:
 PARAMETERS_FORMAT = ("heartcv.parameters", 1)
 _PARAM_KEYS = ("format", "format_version", "theta", "theta_std", "units", "estimated", "fixed", "phi", "epsilon",
                "covariance", "cost", "dof", "reduced_chi2", "iterations", "evaluations", "converged", "status",
-               "message", "frames", "points", "observations", "at_bound", "starts", "registration")
+               "message", "frames", "points", "observations", "at_bound", "starts", "registration",
+               "estimated_input")
 
 
 def parameters_to_dict(result, meta: dict | None = None) -> dict:
@@ -330,6 +331,8 @@ def parameters_to_dict(result, meta: dict | None = None) -> dict:
         "starts": list(result.starts),
         "registration": result.registration,
     })
+    if result.estimated_input is not None:
+        d["estimated_input"] = result.estimated_input
     for k, v in md.items():
         if k in _PARAM_KEYS:
             raise ValueError(f"meta: key {k!r} is reserved in a parameters file")
@@ -443,9 +446,24 @@ def parameters_from_dict(d, path="<parameters>"):
             opt("iterations", int, 0), opt("evaluations", int, 0), opt("converged", bool, True),
             opt("status", int, 0), opt("message", str, ""), opt("frames", int, 0), opt("points", int, 0),
             opt("observations", int, 0), tuple(starts), tuple(at_bound), reg, meta, covariance_kind=kind,
+            estimated_input=_estimated_input(d.get("estimated_input"), path),
         )
     except ValueError as exc:  # FitResult's own checks of the values it is given (validation, not computation)
         raise InputError(path, str(exc)) from None
+
+
+def _estimated_input(entry, path):
+    """The ``estimated_input`` entry of a parameters file, checked by building its block (FileFormatError naming
+    the field)."""
+    if entry is None:
+        return None
+    from .unknown_input import InputBlock
+
+    try:
+        InputBlock.from_dict(entry)
+    except ValueError as exc:
+        raise InputError(path, str(exc), "estimated_input") from None
+    return entry
 
 
 def write_parameters(path, result, meta: dict | None = None):

@@ -103,7 +103,8 @@ class JointPrior:
     Q_l: np.ndarray  # (n_l, n_l)
 
 
-def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, dt=None) -> JointPrior:
+def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, dt=None,
+                input_block=None) -> JointPrior:
     """Prior of the joint state: ``x_n ~ N(phi(theta0), diag(prior_std^2))`` and the kinematic state at the
     equilibrium of the (uncertain) parameters, ``x_l = x_static(phi) + e``, ``e ~ N(0, C_l0)``, linearised at
     ``phi0``: mean ``x_static(phi0)``, ``C_ln = J C_nn``, ``C_ll = C_l0 + J C_nn J^T`` with
@@ -117,6 +118,8 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
         Prior standard deviation of the estimated parameters in phi units (default: the model file's).
     block : tracker.reference.ReferenceBlock, optional
         Static reference states appended to the kinematic state (uncorrelated with the rest in the prior).
+    input_block : tracker.unknown_input.InputBlock, optional
+        The estimated input and rigid motion, appended after the reference states (uncorrelated in the prior).
     dt : float, optional
         Frame interval of the sequence: the random walk ``Q_n`` is the model file's per frame of ``dt``
         (:meth:`tracker.config.ModelConfig.random_walk_std_phi`); None: per frame at the model file's rate.
@@ -161,6 +164,15 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
         C_full[M:, M:] = C_l
         C = C_full
         Q_l = block.noise(Q_l)
+    if input_block is not None:
+        from .unknown_input import extend_noise, extend_prior
+
+        x_l, C_l = extend_prior(x_l, C[M:, M:], input_block)
+        C_full = np.zeros((M + x_l.size, M + x_l.size))
+        C_full[:C.shape[0], :C.shape[0]] = C
+        C_full[M:, M:] = C_l
+        C = C_full
+        Q_l = extend_noise(Q_l, input_block)
     return JointPrior(GaussianState(np.concatenate([x_n, x_l]), C), space, Q_n, Q_l)
 
 
@@ -183,7 +195,7 @@ class JointFilter(Estimator):
         return super().__new__(cls)
 
     def __init__(self, name: str, model: PatchModel, space: ParameterSpace, dt: float, Q_n, Q_l,
-                 options: JointOptions = JointOptions()):
+                 options: JointOptions = JointOptions(), input_block=None):
         if name != self.name:
             raise ValueError(f"estimator: {self.name!r} expected by {type(self).__name__}, got {name!r}")
         self.model = model
@@ -194,8 +206,10 @@ class JointFilter(Estimator):
         self.Q_l = np.asarray(Q_l, float)
         self.n_x = model.state_dim
         self.static = max(self.Q_l.shape[0] - self.n_x, 0)    # static states after the kinematic ones
+        self.input_block = input_block                         # the last of them: tracker.unknown_input
         self.options = options
-        self.modal = model.config.method == "modal" and not options.dense
+        # the input block couples into the kinematic state per sample: the dense path
+        self.modal = model.config.method == "modal" and not options.dense and input_block is None
         self.family = TransitionFamily(model, dt) if self.modal else None
         lo, up = space.bounds_phi
         self.lower, self.upper = lo, up
@@ -232,9 +246,19 @@ class JointFilter(Estimator):
             return self.family.propagate(thetas, X, u0, u1)
         n = self.n_x
         out = np.array(X, float, copy=True)
+        blk = self.input_block
+        if blk is not None:
+            P0, P1 = blk.input_maps()
+            T = blk.transition()
+            m = blk.size
         for i, (th, x) in enumerate(zip(thetas, X)):
             s = self.model.system(th, self.dt)
-            out[i, :n] = s.A @ x[:n] + s.B0 @ u0 + s.B1 @ u1
+            if blk is None:
+                out[i, :n] = s.A @ x[:n] + s.B0 @ u0 + s.B1 @ u1
+            else:
+                e = x[-m:]
+                out[i, :n] = s.A @ x[:n] + s.B0 @ (u0 + P0 @ e) + s.B1 @ (u1 + P1 @ e)
+                out[i, -m:] = T @ e
         return out
 
     def dense_transition(self, theta, u0, u1):
@@ -242,7 +266,13 @@ class JointFilter(Estimator):
         from .reference import augment_transition
 
         s = self.model.system(theta, self.dt)
-        return augment_transition(s.A, s.B0 @ u0 + s.B1 @ u1, self.static)
+        blk = self.input_block
+        if blk is None:
+            return augment_transition(s.A, s.B0 @ u0 + s.B1 @ u1, self.static)
+        from .unknown_input import extend_transition
+
+        A, b = augment_transition(s.A, s.B0 @ u0 + s.B1 @ u1, self.static - blk.size)
+        return extend_transition(A, s.B0, s.B1, blk), np.concatenate([b, np.zeros(blk.size)])
 
     def sandwich(self, theta, C) -> np.ndarray:
         """``A(theta) C A(theta)^T`` (static states included)."""
@@ -378,7 +408,7 @@ def _theta_and_std(space: ParameterSpace, mean_n, cov_nn):
 def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *, theta0=None, prior_std=None,
               options: JointOptions | None = None, points: ObservedPoints | None = None,
               progress: Callable[[int, int], None] | None = None, references: str = "fixed",
-              adaptation=None, heldout=None) -> EstimateSet:
+              adaptation=None, heldout=None, input_block=None) -> EstimateSet:
     """Run the GE, the joint UKF or the joint EKF over a measurement set.
 
     Parameters
@@ -396,6 +426,9 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
         means and variances are in ``state_mean`` / ``state_var`` after the model's ``2 r`` columns).
     heldout : (H,) int, optional
         Points (indices into ``meas``) left out of every update (:func:`tracker.estimators.holdout_points`).
+    input_block : tracker.unknown_input.InputBlock, optional
+        A recording without the model's pressure: the input's harmonics and the rigid motion as states of the
+        linear block (after the reference states; the dense transition path).
     adaptation : tracker.adaptive.AdaptationOptions, optional
         Estimate the parameters' random walk and the model error added to R from the innovations
         (:mod:`tracker.adaptive`); None keeps the model file's random walk and the measurement covariances.
@@ -419,24 +452,31 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
 
     check_references(references)
     options = options or JointOptions.from_config(model.config)
-    pts, obs, u, trans, K, dt = run_setup(model, meas, points)
+    pts, obs, u, trans, K, dt = run_setup(model, meas, points, input_block)
+    u_start, u_ref = u[0], u
+    if input_block is not None:
+        from .unknown_input import extend_observation, prior_input
+
+        u_start, u_ref = prior_input(input_block, u[0]), u + input_block.mean_inputs(K)
     block = None
     if references == "estimate":
-        block = reference_block(model, model.config.theta if theta0 is None else theta0, u)
+        block = reference_block(model, model.config.theta if theta0 is None else theta0, u_ref)
         obs = augment_observation(obs, block)
-    prior = joint_prior(model, u[0], theta0, prior_std, block, dt)
+    H = obs.H if input_block is None else extend_observation(obs.H, pts.keep.size, input_block)
+    prior = joint_prior(model, u_start, theta0, prior_std, block, dt, input_block)
     space = prior.space
     M = space.dim
-    filt = JointFilter(estimator, model, space, dt, prior.Q_n, prior.Q_l, options)
+    filt = JointFilter(estimator, model, space, dt, prior.Q_n, prior.Q_l, options, input_block)
     meta = {"dropped_points": pts.dropped.tolist(), "joseph": options.joseph, "dt": dt,
             "estimated": list(space.estimated), "theta0": space.theta.tolist(),
             "prior_std_phi": np.sqrt(np.diag(prior.state.cov[:M, :M])).tolist(),
             "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
-            "references": references, "reference_states": 0 if block is None else block.size}
+            "references": references, "reference_states": 0 if block is None else block.size,
+            "input_states": 0 if input_block is None else input_block.size}
     adapt = None
     if adaptation is not None:
         from .adaptive import NoiseAdaptation
 
         adapt = NoiseAdaptation(M, dt, prior.Q_n, adaptation)
-    return run_filter(filt, meas, prior.state, obs.H, obs.reference, pts.keep, u, trans, prior.Q_n,
+    return run_filter(filt, meas, prior.state, H, obs.reference, pts.keep, u, trans, prior.Q_n,
                       joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout)

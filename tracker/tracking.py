@@ -100,12 +100,25 @@ def frame_interval(model: PatchModel, meas: MeasurementSet) -> float:
     return dt
 
 
-def run_setup(model: PatchModel, meas: MeasurementSet, points: ObservedPoints | None = None):
+def run_setup(model: PatchModel, meas: MeasurementSet, points: ObservedPoints | None = None, input_block=None):
     """What every estimator run over ``meas`` starts from: ``(points, observation, inputs (K, n_u), translation
-    (K, 3), K, dt)`` (:func:`locate_points`, :func:`frame_interval`)."""
+    (K, 3), K, dt)`` (:func:`locate_points`, :func:`frame_interval`). With an ``input_block``
+    (:class:`tracker.unknown_input.InputBlock`) the block's input column is zero (the block drives it) and there
+    is no known translation (the block carries the rigid motion)."""
     pts = points or locate_points(model, meas)
+    if input_block is not None:
+        from .unknown_input import known_inputs
+
+        return (pts, pts.observation, known_inputs(meas, model, input_block), np.zeros((meas.n_frames, 3)),
+                meas.n_frames, frame_interval(model, meas))
     return (pts, pts.observation, meas.input_columns(model.input_names), meas.translation(), meas.n_frames,
             frame_interval(model, meas))
+
+
+def _prior_input(input_block, u0):
+    from .unknown_input import prior_input
+
+    return prior_input(input_block, u0)
 
 
 def check_references(references: str) -> None:
@@ -134,40 +147,54 @@ class KalmanFilter(Estimator):
 
 def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=False,
                points: ObservedPoints | None = None, references: str = "fixed", adaptation=None,
-               heldout=None) -> EstimateSet:
+               heldout=None, input_block=None) -> EstimateSet:
     """Kalman filter with fixed ``theta`` (default: the model file's) over a measurement set (the ``kf`` variant
     of :mod:`tracker.estimators`, its frame loop :func:`tracker.estimators.run_filter`).
 
     ``references='estimate'`` appends the static reference states (:mod:`tracker.reference`) to the state;
     ``adaptation`` (:class:`tracker.adaptive.AdaptationOptions`) adds the model error estimated from the
     innovations to R (the KF has no random walk to adapt); ``heldout`` (indices into ``meas``) are left out of
-    every update (:func:`tracker.estimators.run_filter`)."""
+    every update (:func:`tracker.estimators.run_filter`); ``input_block``
+    (:class:`tracker.unknown_input.InputBlock`) estimates the input and the rigid motion as states."""
     from .reference import augment_observation, augment_transition, reference_block
 
     check_references(references)
     theta = model.config.theta if theta is None else np.asarray(theta, float)
-    pts, obs, u, trans, K, dt = run_setup(model, meas, points)
+    pts, obs, u, trans, K, dt = run_setup(model, meas, points, input_block)
     sysd = model.system(theta, dt)
     Q = model.process_noise(theta, dt)
     A, B0, B1 = sysd.A, sysd.B0, sysd.B1
-    mean0, cov0 = model.static_state(theta, u[0]), model.initial_covariance()
+    u_start = u[0] if input_block is None else _prior_input(input_block, u[0])
+    mean0, cov0 = model.static_state(theta, u_start), model.initial_covariance()
     block = None
     if references == "estimate":
-        block = reference_block(model, theta, u)
+        u_ref = u if input_block is None else u + input_block.mean_inputs(K)
+        block = reference_block(model, theta, u_ref)
         obs = augment_observation(obs, block)
         A, _ = augment_transition(A, np.zeros(A.shape[0]), block.size)
         B0 = np.vstack([B0, np.zeros((block.size, B0.shape[1]))])
         B1 = np.vstack([B1, np.zeros((block.size, B1.shape[1]))])
         Q = block.noise(Q)
         mean0, cov0 = block.prior(mean0, cov0)
+    H = obs.H
+    if input_block is not None:
+        from .unknown_input import extend_noise, extend_observation, extend_prior, extend_transition
+
+        A = extend_transition(A, sysd.B0, sysd.B1, input_block)
+        B0 = np.vstack([B0, np.zeros((input_block.size, B0.shape[1]))])
+        B1 = np.vstack([B1, np.zeros((input_block.size, B1.shape[1]))])
+        Q = extend_noise(Q, input_block)
+        mean0, cov0 = extend_prior(mean0, cov0, input_block)
+        H = extend_observation(H, pts.keep.size, input_block)
     kf = KalmanFilter(theta, A, B0, B1, Q)
     meta = {"dropped_points": pts.dropped.tolist(), "joseph": joseph, "dt": dt, "references": references,
-            "reference_states": 0 if block is None else block.size}
+            "reference_states": 0 if block is None else block.size,
+            "input_states": 0 if input_block is None else input_block.size}
     adapt = None
     if adaptation is not None:
         from .adaptive import NoiseAdaptation
 
         adapt = NoiseAdaptation(0, dt, np.zeros((0, 0)), adaptation)
-    return run_filter(kf, meas, GaussianState(mean0, cov0), obs.H, obs.reference, pts.keep, u, trans,
+    return run_filter(kf, meas, GaussianState(mean0, cov0), H, obs.reference, pts.keep, u, trans,
                       np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt, heldout=heldout)
 

@@ -1,0 +1,80 @@
+"""CLI: heartcv fit and track on a recording without pressure (issue 16): the estimated input in the parameters
+file, tracking with it, and the clear exit 1 for a recording without a heartbeat."""
+
+import dataclasses
+import json
+
+from click.testing import CliRunner
+import numpy as np
+import pytest
+
+from heartcv.cli.main import main
+from heartcv.tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
+from tests.conftest import SAMPLES
+
+PAPER = str(SAMPLES / "paper_patch.yaml")
+
+
+def _without_inputs(m, **changes):
+    return dataclasses.replace(m, inputs=np.zeros((m.n_frames, 0)), input_names=(), input_units=(), **changes)
+
+
+@pytest.fixture(scope="module")
+def blind_file(tmp_path_factory):
+    d = tmp_path_factory.mktemp("blind")
+    path = str(d / "m.npz")
+    res = CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "6", "--seed", "2", "-o", path])
+    assert res.exit_code == 0, res.output
+    blind = str(d / "blind.npz")
+    write_measurements(blind, _without_inputs(read_measurements(path)))
+    return blind
+
+
+def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90", "--json"])
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["heart_rate_hz"] == pytest.approx(1.0, rel=0.01)       # paper_patch.yaml: 60 bpm
+    p = read_parameters(params)
+    assert p.estimated_input["held_fixed"] == ["E"] and p.estimated == ("nu",)
+    assert len(p.estimated_input["amplitudes_pa"]) == 12
+    out = str(tmp_path / "kf.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "-o", out, "--json"])
+    assert res.exit_code == 0, res.output
+    e = read_estimates(out)
+    assert e.complete and e.meta["input_states"] == 8 * 6 + 3
+    hold = str(tmp_path / "hold.npz")
+    assert CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--estimator", "hold",
+                                     "-o", hold]).exit_code == 0
+    m = read_measurements(blind_file)
+    err_kf = np.nanmean(np.linalg.norm(e.predictions[1:] - m.positions[1:], axis=-1))
+    err_hold = np.nanmean(np.linalg.norm(read_estimates(hold).predictions[1:] - m.positions[1:], axis=-1))
+    assert err_kf < err_hold
+
+
+def test_fit_exits_1_without_a_heartbeat(tmp_path, blind_file):
+    m = read_measurements(blind_file)
+    short = str(tmp_path / "short.npz")
+    write_measurements(short, dataclasses.replace(m, times=m.times[:40], positions=m.positions[:40],
+                                                  covariances=m.covariances[:40], inputs=m.inputs[:40],
+                                                  views=m.views[:40], reprojection_rms=m.reprojection_rms[:40]))
+    res = CliRunner().invoke(main, ["fit", short, "--model", PAPER, "-o", str(tmp_path / "p.yaml")])
+    assert res.exit_code == 1 and "heartbeats" in res.output and "Traceback" not in res.output
+    rng = np.random.default_rng(0)
+    flat = str(tmp_path / "flat.npz")
+    noise = m.reference[None] + 1e-4 * rng.standard_normal(m.positions.shape)
+    write_measurements(flat, dataclasses.replace(m, positions=noise))
+    res = CliRunner().invoke(main, ["fit", flat, "--model", PAPER, "-o", str(tmp_path / "p.yaml")])
+    assert res.exit_code == 1 and "no periodic motion" in res.output
+    assert not (tmp_path / "p.yaml").exists()
+
+
+def test_fit_input_options_are_checked(tmp_path, blind_file):
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "p.yaml"),
+                                    "--input", "recorded"])
+    assert res.exit_code == 2 and "pressure" in res.output
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "p.yaml"),
+                                    "--patch", "observed"])
+    assert res.exit_code == 2 and "patch frame" in res.output

@@ -1,0 +1,408 @@
+"""The input of a recording without a pressure signal (issue 16, docs/model.md "Unknown input").
+
+Most recordings of real hearts come without a catheter pressure; the model is driven by one. Here the input is
+estimated instead:
+
+* the **heart rate** ``f`` from the spectrum of the tracked points' motion (:func:`estimate_heart_rate`): the peak
+  of the summed power spectrum in 0.5-4 Hz, refined by a least-squares fit of ``H`` harmonics of ``f`` to the
+  dominant motion signal (the first principal component of the tracks);
+* the **input's harmonics**: ``u(t) = sum_h a_h cos(2 pi h f t) + b_h sin(2 pi h f t)`` on the model's pressure
+  column (its mean is a constant displacement that the points' offsets absorb). ``heartcv fit`` profiles the
+  amplitudes out of its weighted least squares (the states are linear in them for a given theta);
+* a **rigid motion** of the observed surface (respiration, the heart's bulk motion in the view): a per-frame
+  translation in the fit; in the estimators a random-walk translation plus ``H`` harmonics of ``f`` per axis.
+
+In the estimators the amplitudes and the rigid motion are states of the linear block (:class:`InputBlock`): each
+harmonic is a 2-D rotation ``z_h' = R(2 pi h f dt) z_h + w`` whose first component is that harmonic's value, so
+given the parameters the whole linear block stays linear-Gaussian and the Rao-Blackwellised structure and the
+exact conditional propagation of the GE hold. The transition of the kinematic state couples to the block through
+the first-order hold of the model's input, ``x' = A x + B0 u_k + B1 u_{k+1}`` with ``u_k = P0 e_k`` and
+``u_{k+1} = P0 T e_k = P1 e_k`` (the block's own noise in ``u_{k+1}`` is neglected: a fraction ``drift sqrt(dt)``
+of the input over one frame). The heart rate stays at the fit's value (the oscillators' random walk follows a
+slowly varying rate as a slowly turning phase).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+__all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
+           "DRIFT_PER_SQRT_S", "PEAK_RATIO", "BAND_HZ", "fit_harmonics", "input_block_from_fit", "extend_observation",
+           "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs"]
+
+HARMONICS = 6
+"""Harmonics of the heart rate in the estimated input and in the rigid motion. An LV pressure pulse needs them: on
+the paper patch at 72 bpm the KF with 3 harmonics predicts 1.39x worse than with the recorded pressure, with 6
+1.10x, with 10 1.05x (tests/tracker/test_unknown_input.py)."""
+
+DRIFT_PER_SQRT_S = 0.2
+"""Random walk of each harmonic's oscillator, as a fraction of the harmonic's fitted amplitude per sqrt(s): beat-
+to-beat changes of amplitude and phase (heart-rate variability) of 20 % over one second."""
+
+PEAK_RATIO = 10.0
+"""A heartbeat needs a spectral peak this many times the band's median power (a heartbeat gives 100x and more;
+white noise a few)."""
+
+BAND_HZ = (0.5, 4.0)
+"""Heart rates searched (30-240 bpm)."""
+
+MIN_BEATS = 2.0
+"""Heartbeats a recording must hold for its heart rate to be estimated."""
+
+
+class NoHeartbeat(ValueError):
+    """The tracks show no heartbeat: too short (fewer than :data:`MIN_BEATS` beats) or no periodic motion."""
+
+
+@dataclass(frozen=True)
+class HeartRate:
+    """Result of :func:`estimate_heart_rate`.
+
+    Attributes
+    ----------
+    frequency_hz : float     the refined heart rate
+    peak_hz : float          the spectral peak before refinement
+    peak_ratio : float       the peak's power over the band's median power
+    beats : float            heartbeats in the frames used
+    points : int             points used (seen in at least 90 % of the frames)
+    """
+
+    frequency_hz: float
+    peak_hz: float
+    peak_ratio: float
+    beats: float
+    points: int
+
+
+def _filled_tracks(times, positions, min_seen=0.9):
+    """Tracks seen in at least ``min_seen`` of the frames, gaps filled by linear interpolation, detrended: (K, 3 P)."""
+    y = np.asarray(positions, float)
+    K = y.shape[0]
+    seen = np.isfinite(y[..., 0])
+    use = np.flatnonzero(seen.mean(axis=0) >= min_seen)
+    k = np.arange(K)
+    cols = []
+    for p in use:
+        ok = seen[:, p]
+        for c in range(3):
+            s = np.interp(k, k[ok], y[ok, p, c])
+            cols.append(s - np.polyval(np.polyfit(k, s, 1), k))
+    return (np.stack(cols, axis=1) if cols else np.zeros((K, 0))), use.size
+
+
+def harmonic_basis(t, frequency_hz: float, harmonics: int = HARMONICS) -> np.ndarray:
+    """``[cos(2 pi f t), sin(2 pi f t), cos(4 pi f t), sin(4 pi f t), ...]``, shape (K, 2 harmonics)."""
+    t = np.asarray(t, float).reshape(-1)
+    w = 2 * np.pi * float(frequency_hz) * np.arange(1, harmonics + 1)
+    ph = t[:, None] * w[None, :]
+    out = np.empty((t.size, 2 * harmonics))
+    out[:, 0::2] = np.cos(ph)
+    out[:, 1::2] = np.sin(ph)
+    return out
+
+
+def _harmonic_rss(t, s, f, harmonics):
+    """Residual sum of squares of the least-squares fit of a constant and ``harmonics`` harmonics of f to s."""
+    X = np.hstack([np.ones((t.size, 1)), harmonic_basis(t, f, harmonics)])
+    coef, *_ = np.linalg.lstsq(X, s, rcond=None)
+    r = s - X @ coef
+    return float(np.sum(r * r))
+
+
+def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_HZ) -> HeartRate:
+    """The heart rate of tracked points (K, P, 3 with NaN where unseen): spectral peak, then refined.
+
+    The peak of the summed Hann-windowed power spectrum of every point's detrended coordinates in ``band``
+    (points seen in >= 90 % of the frames), parabolic interpolation of its log power; then the frequency within one
+    bin of it that minimises the residual of a least-squares fit of ``harmonics`` harmonics to the dominant motion
+    (first principal component of the tracks), by bounded scalar minimisation.
+
+    Raises
+    ------
+    NoHeartbeat
+        Fewer than 8 frames or no track seen in 90 % of them; shorter than :data:`MIN_BEATS` beats at the found
+        rate (or at the band's upper end); no peak :data:`PEAK_RATIO` times the band's median power.
+    """
+    from scipy.optimize import minimize_scalar
+
+    t = np.asarray(times, float)
+    K = t.size
+    lo, hi = band
+    if K < 8:
+        raise NoHeartbeat(f"{K} frames: too short to show a heartbeat")
+    dt = float(np.median(np.diff(t)))
+    duration = K * dt
+    if duration < MIN_BEATS / hi:
+        raise NoHeartbeat(f"{duration:.3g} s: shorter than {MIN_BEATS:g} heartbeats even at {hi * 60:g} bpm")
+    Y, n_points = _filled_tracks(t, positions)
+    if n_points == 0:
+        raise NoHeartbeat("no track is seen in 90 % of the frames: no motion signal to take a heart rate from")
+    win = np.hanning(K)[:, None]
+    power = (np.abs(np.fft.rfft(Y * win, axis=0)) ** 2).sum(axis=1)
+    f = np.fft.rfftfreq(K, dt)
+    band_idx = np.flatnonzero((f >= lo) & (f <= hi))
+    if band_idx.size < 3:
+        raise NoHeartbeat(f"{duration:.3g} s: too short to resolve heart rates in {lo:g}-{hi:g} Hz")
+    i = band_idx[np.argmax(power[band_idx])]
+    ratio = float(power[i] / max(np.median(power[band_idx]), 1e-300))
+    df = f[1] - f[0]
+    peak = float(f[i])
+    if 0 < i < power.size - 1 and (power[i - 1:i + 2] > 0).all():
+        a, b, c = np.log(power[i - 1:i + 2])
+        den = a - 2 * b + c
+        peak = float((i + (np.clip(0.5 * (a - c) / den, -0.5, 0.5) if den < 0 else 0.0)) * df)
+    beats = duration * peak
+    if beats < MIN_BEATS:
+        raise NoHeartbeat(f"{duration:.3g} s holds {beats:.2g} heartbeats at the tracks' dominant frequency "
+                          f"{peak:.3g} Hz: at least {MIN_BEATS:g} are needed")
+    if not ratio >= PEAK_RATIO:
+        raise NoHeartbeat(f"no periodic motion: the tracks' largest spectral peak in {lo:g}-{hi:g} Hz is "
+                          f"{ratio:.3g} times the band's median power (a heartbeat gives more than {PEAK_RATIO:g})")
+    # the dominant motion signal: first principal component of the tracks
+    U, S, _ = np.linalg.svd(Y - Y.mean(axis=0), full_matrices=False)
+    s = U[:, 0] * S[0]
+    tt = t - t[0]
+    res = minimize_scalar(lambda ff: _harmonic_rss(tt, s, ff, harmonics), bounds=(max(lo, peak - df), peak + df),
+                          method="bounded", options={"xatol": 1e-6 * peak})
+    return HeartRate(float(res.x), peak, ratio, float(duration * res.x), int(n_points))
+
+
+def fit_harmonics(t, series, frequency_hz: float, harmonics: int = HARMONICS):
+    """Least-squares constant and harmonics of ``series`` (K, m) at times t (relative to the first):
+    ``(constant (m,), coefficients (2 harmonics, m) [cos_1, sin_1, ...], residual (K, m))``."""
+    t = np.asarray(t, float)
+    s = np.asarray(series, float)
+    X = np.hstack([np.ones((t.size, 1)), harmonic_basis(t - t[0], frequency_hz, harmonics)])
+    coef, *_ = np.linalg.lstsq(X, s, rcond=None)
+    return coef[0], coef[1:], s - X @ coef
+
+
+def _rotation(angle):
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, s], [-s, c]])
+
+
+@dataclass(frozen=True)
+class InputBlock:
+    """The estimated input and rigid motion as states of the linear block, appended after the kinematic (and
+    reference) states: ``e = [z_p (2H) | tau (3) | z_r (3 x 2H)]``.
+
+    ``z_p``: the input's harmonics (oscillator h: ``[c_h, s_h]``, value ``c_h``), driving model input ``column``;
+    ``tau``: a random-walk translation; ``z_r``: the harmonics of the rigid motion per axis. The points move
+    rigidly by ``G e = tau + sum_h c_h^axis``.
+
+    Attributes
+    ----------
+    frequency_hz : float        heart rate
+    harmonics : int             H
+    dt : float                  frame interval (s)
+    n_u : int                   the model's inputs
+    column : int                the model input driven by z_p
+    mean0 : ndarray (m,)        prior mean at the first frame
+    std0 : ndarray (m,)         prior standard deviation
+    noise_std : ndarray (m,)    random walk per frame
+    input_scale : float         input units (Pa) per unit of ``z_p`` (the states stay of order 1, as the
+                                kinematic ones in metres, for the estimators' runaway checks and conditioning)
+    """
+
+    frequency_hz: float
+    harmonics: int
+    dt: float
+    n_u: int
+    column: int
+    mean0: np.ndarray
+    std0: np.ndarray
+    noise_std: np.ndarray
+    input_scale: float = 1.0
+
+    def __post_init__(self):
+        m = self.size
+        for name in ("mean0", "std0", "noise_std"):
+            v = np.asarray(getattr(self, name), float).reshape(-1)
+            if v.size != m or not np.isfinite(v).all():
+                raise ValueError(f"input block: {name} must hold {m} finite values, got {v.size}")
+            object.__setattr__(self, name, v)
+        if not (self.frequency_hz > 0 and self.dt > 0 and self.input_scale > 0 and self.harmonics >= 1
+                and 0 <= self.column < self.n_u):
+            raise ValueError("input block: positive frequency, dt and harmonics and a valid input column expected")
+
+    @property
+    def size(self) -> int:
+        return 2 * self.harmonics + 3 + 6 * self.harmonics
+
+    @property
+    def slices(self):
+        H = self.harmonics
+        return slice(0, 2 * H), slice(2 * H, 2 * H + 3), slice(2 * H + 3, 8 * H + 3)
+
+    def transition(self) -> np.ndarray:
+        """T (m, m): a rotation by ``2 pi h f dt`` per oscillator, identity for the translation."""
+        H = self.harmonics
+        T = np.eye(self.size)
+        for h in range(1, H + 1):
+            R = _rotation(2 * np.pi * h * self.frequency_hz * self.dt)
+            i = 2 * (h - 1)
+            T[i:i + 2, i:i + 2] = R
+            for a in range(3):
+                j = 2 * H + 3 + 2 * H * a + i
+                T[j:j + 2, j:j + 2] = R
+        return T
+
+    def input_maps(self):
+        """``(P0, P1)`` (n_u, m): the model's inputs at the start and the end of a frame from the block's state at
+        its start (``P1 = P0 T``)."""
+        P0 = np.zeros((self.n_u, self.size))
+        P0[self.column, 0:2 * self.harmonics:2] = self.input_scale
+        return P0, P0 @ self.transition()
+
+    def translation_map(self) -> np.ndarray:
+        """G (3, m): the rigid translation of every point."""
+        H = self.harmonics
+        G = np.zeros((3, self.size))
+        G[:, 2 * H:2 * H + 3] = np.eye(3)
+        for a in range(3):
+            G[a, 2 * H + 3 + 2 * H * a:2 * H + 3 + 2 * H * (a + 1):2] = 1.0
+        return G
+
+    def coupling(self, B0, B1) -> np.ndarray:
+        """``B0 P0 + B1 P1`` (n_x, m): the kinematic state's dependence on the block over one frame."""
+        P0, P1 = self.input_maps()
+        return np.asarray(B0) @ P0 + np.asarray(B1) @ P1
+
+    def noise(self) -> np.ndarray:
+        return np.diag(self.noise_std ** 2)
+
+    def mean_inputs(self, K: int) -> np.ndarray:
+        """The model's inputs (K, n_u) of the block's prior mean propagated without noise (the fitted input)."""
+        P0, _ = self.input_maps()
+        T = self.transition()
+        e = self.mean0.copy()
+        out = np.empty((K, self.n_u))
+        for k in range(K):
+            out[k] = P0 @ e
+            e = T @ e
+        return out
+
+    def mean_translation(self, K: int) -> np.ndarray:
+        """The rigid translation (K, 3) of the block's prior mean propagated without noise."""
+        G, T = self.translation_map(), self.transition()
+        e = self.mean0.copy()
+        out = np.empty((K, 3))
+        for k in range(K):
+            out[k] = G @ e
+            e = T @ e
+        return out
+
+    def to_dict(self) -> dict:
+        return {"kind": "harmonic", "frequency_hz": float(self.frequency_hz), "harmonics": int(self.harmonics),
+                "dt": float(self.dt), "n_u": int(self.n_u), "column": int(self.column),
+                "input_scale": float(self.input_scale), "mean0": self.mean0.tolist(), "std0": self.std0.tolist(),
+                "noise_std": self.noise_std.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict, dt: float | None = None) -> "InputBlock":
+        """The block of a parameters file's ``estimated_input``; ``dt`` another frame interval (the rotation and
+        the random walk per frame follow it). ValueError naming the key."""
+        if not isinstance(d, dict) or d.get("kind") != "harmonic":
+            raise ValueError("kind: 'harmonic' expected")
+        try:
+            blk = cls(float(d["frequency_hz"]), int(d["harmonics"]), float(d["dt"]), int(d["n_u"]), int(d["column"]),
+                      np.asarray(d["mean0"], float), np.asarray(d["std0"], float),
+                      np.asarray(d["noise_std"], float), float(d.get("input_scale", 1.0)))
+        except KeyError as exc:
+            raise ValueError(f"{exc.args[0]}: missing") from None
+        except (TypeError, ValueError) as exc:
+            raise ValueError(str(exc)) from None
+        if dt is not None and abs(dt - blk.dt) > 1e-9 * blk.dt:
+            blk = cls(blk.frequency_hz, blk.harmonics, float(dt), blk.n_u, blk.column, blk.mean0, blk.std0,
+                      blk.noise_std * math.sqrt(dt / blk.dt), blk.input_scale)
+        return blk
+
+
+def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_std, translation, times,
+                         drift: float = DRIFT_PER_SQRT_S) -> InputBlock:
+    """The estimators' block from a fit: input amplitudes ``alpha`` (2H,) [a_1, b_1, ...] with their standard
+    deviations, the fit's per-frame translation (K_fit, 3) at ``times`` (the sequence's first frames).
+
+    The prior of each oscillator is its fitted amplitude at the first frame (``[a_h, b_h]``), with standard deviation
+    the fit's plus ``drift`` of the amplitude; its random walk per frame ``drift |(a_h, b_h)| sqrt(dt)``. The rigid
+    motion: harmonics fitted to the translation (:func:`fit_harmonics`) likewise; the random-walk translation starts
+    where the translation minus its harmonics starts, with standard deviation the residual's, and moves by the
+    residual's increments (their standard deviation per frame)."""
+    H = int(harmonics)
+    alpha = np.asarray(alpha, float).reshape(2 * H)
+    alpha_std = np.asarray(alpha_std, float).reshape(2 * H)
+    m = 8 * H + 3
+    mean0, std0, q = np.zeros(m), np.zeros(m), np.zeros(m)
+    scale = float(np.sqrt(np.sum(alpha ** 2)))
+    scale = scale if scale > 0 and np.isfinite(scale) else 1.0
+    amp_p = np.repeat(np.hypot(alpha[0::2], alpha[1::2]), 2) / scale
+    mean0[:2 * H] = alpha / scale
+    std0[:2 * H] = np.hypot(alpha_std / scale, drift * amp_p) + 1e-9
+    q[:2 * H] = drift * amp_p * math.sqrt(dt) + 1e-12
+    tr = np.asarray(translation, float)
+    c, coef, resid = fit_harmonics(times, tr, frequency_hz, H)
+    rw_sd = np.std(np.diff(resid, axis=0), axis=0) if resid.shape[0] > 2 else np.full(3, 1e-4)
+    mean0[2 * H:2 * H + 3] = c + resid[0]
+    std0[2 * H:2 * H + 3] = np.std(resid, axis=0) + 1e-9
+    q[2 * H:2 * H + 3] = rw_sd + 1e-9
+    for a in range(3):
+        s = slice(2 * H + 3 + 2 * H * a, 2 * H + 3 + 2 * H * (a + 1))
+        amp = np.repeat(np.hypot(coef[0::2, a], coef[1::2, a]), 2)
+        mean0[s] = coef[:, a]
+        std0[s] = drift * amp + 1e-9
+        q[s] = drift * amp * math.sqrt(dt) + 1e-12
+    return InputBlock(float(frequency_hz), H, float(dt), int(n_u), int(column), mean0, std0, q, scale)
+
+
+# -- the block in the estimators' matrices ---------------------------------------------------------------------------
+
+def extend_observation(H, n_points: int, block: InputBlock) -> np.ndarray:
+    """``[H, G; H, G; ...]``: every point moves by the block's rigid translation ``G e``."""
+    return np.hstack([np.asarray(H, float), np.tile(block.translation_map(), (int(n_points), 1))])
+
+
+def extend_prior(mean, cov, block: InputBlock):
+    """The linear block's prior extended by ``e ~ N(mean0, diag(std0^2))`` (uncorrelated with the rest)."""
+    n, m = mean.size, block.size
+    out = np.zeros((n + m, n + m))
+    out[:n, :n] = cov
+    out[n:, n:] = np.diag(block.std0 ** 2)
+    return np.concatenate([mean, block.mean0]), out
+
+
+def extend_noise(Q, block: InputBlock) -> np.ndarray:
+    n = Q.shape[0]
+    out = np.zeros((n + block.size, n + block.size))
+    out[:n, :n] = Q
+    out[n:, n:] = block.noise()
+    return out
+
+
+def extend_transition(A, B0, B1, block: InputBlock) -> np.ndarray:
+    """``[[A, C], [0, T]]`` with ``C = [B0 P0 + B1 P1; 0]`` (A (n, n) may already carry static states after the
+    model's ``n_x = B0.shape[0]`` kinematic ones)."""
+    n, m, n_x = A.shape[0], block.size, B0.shape[0]
+    out = np.zeros((n + m, n + m))
+    out[:n, :n] = A
+    out[:n_x, n:] = block.coupling(B0, B1)
+    out[n:, n:] = block.transition()
+    return out
+
+
+def prior_input(block: InputBlock, known_u0) -> np.ndarray:
+    """The model's inputs at the first frame: the known ones plus the block's prior mean."""
+    P0, _ = block.input_maps()
+    return np.asarray(known_u0, float) + P0 @ block.mean0
+
+
+def known_inputs(meas, model, block: InputBlock) -> np.ndarray:
+    """The model's inputs (K, n_u) recorded in ``meas``, the block's column (and any other missing one) zero."""
+    out = np.zeros((meas.n_frames, len(model.input_names)))
+    for j, name in enumerate(model.input_names):
+        if j != block.column and name in meas.input_names:
+            out[:, j] = meas.input_columns([name])[:, 0]
+    return out
