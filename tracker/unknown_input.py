@@ -154,10 +154,9 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
         a, b, c = np.log(power[i - 1:i + 2])
         den = a - 2 * b + c
         peak = float((i + (np.clip(0.5 * (a - c) / den, -0.5, 0.5) if den < 0 else 0.0)) * df)
-    beats = duration * peak
-    if beats < MIN_BEATS:
-        raise NoHeartbeat(f"{duration:.3g} s holds {beats:.2g} heartbeats at the tracks' dominant frequency "
-                          f"{peak:.3g} Hz: at least {MIN_BEATS:g} are needed")
+    if duration * (peak + df) < MIN_BEATS:   # short even at the top of the peak's bin
+        raise NoHeartbeat(f"{duration:.3g} s holds {duration * peak:.2g} heartbeats at the tracks' dominant "
+                          f"frequency {peak:.3g} Hz: at least {MIN_BEATS:g} are needed")
     if not ratio >= PEAK_RATIO:
         raise NoHeartbeat(f"no periodic motion: the tracks' largest spectral peak in {lo:g}-{hi:g} Hz is "
                           f"{ratio:.3g} times the band's median power (a heartbeat gives more than {PEAK_RATIO:g})")
@@ -167,7 +166,11 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
     tt = t - t[0]
     res = minimize_scalar(lambda ff: _harmonic_rss(tt, s, ff, harmonics), bounds=(max(lo, peak - df), peak + df),
                           method="bounded", options={"xatol": 1e-6 * peak})
-    return HeartRate(float(res.x), peak, ratio, float(duration * res.x), int(n_points))
+    beats = float(duration * res.x)
+    if beats < MIN_BEATS - 1e-9:
+        raise NoHeartbeat(f"{duration:.3g} s holds {beats:.2g} heartbeats at the tracks' heart rate {res.x:.4g} Hz: "
+                          f"at least {MIN_BEATS:g} are needed")
+    return HeartRate(float(res.x), peak, ratio, beats, int(n_points))
 
 
 def fit_harmonics(t, series, frequency_hz: float, harmonics: int = HARMONICS):
