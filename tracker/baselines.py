@@ -24,16 +24,13 @@ import numpy as np
 
 from .estimator_names import BASELINES
 from .measurements import EstimateSet, MeasurementSet
+from .unknown_input import PEAK_RATIO, filled_tracks, spectral_peak
 
 __all__ = ["BASELINES", "PERIODS", "dominant_frequency", "predict_hold", "predict_constvel",
            "predict_harmonic", "run_baseline"]
 
 PERIODS = 2
 """Heart periods the ``harmonic`` predictor averages."""
-
-PEAK_RATIO = 10.0
-"""A dominant frequency needs a spectral peak this many times the band's median power (a heartbeat gives 100x
-and more; white noise a few)."""
 
 
 def dominant_frequency(times, positions, lo_hz: float = 0.5, hi_hz: float = 4.0) -> float:
@@ -58,27 +55,11 @@ def dominant_frequency(times, positions, lo_hz: float = 0.5, hi_hz: float = 4.0)
     use = seen.mean(axis=0) >= 0.9
     if not use.any() or (K - 1) * dt < 2.0 / hi_hz:
         return float("nan")
-    power = np.zeros(K // 2 + 1)
-    k = np.arange(K)
-    for p in np.flatnonzero(use):
-        ok = seen[:, p]
-        for c in range(3):
-            s = np.interp(k, k[ok], y[ok, p, c])
-            s = s - np.polyval(np.polyfit(k, s, 1), k)
-            power += np.abs(np.fft.rfft(s * np.hanning(K))) ** 2
-    f = np.fft.rfftfreq(K, dt)
-    band = np.flatnonzero((f >= lo_hz) & (f <= hi_hz))
-    if band.size == 0:
+    Y, _ = filled_tracks(t, y)
+    peak, ratio, _ = spectral_peak(Y, dt, (lo_hz, hi_hz))
+    if peak is None or not ratio >= PEAK_RATIO:        # no periodic motion: a flat spectrum
         return float("nan")
-    i = band[np.argmax(power[band])]
-    if not power[i] >= PEAK_RATIO * np.median(power[band]):        # no periodic motion: a flat spectrum
-        return float("nan")
-    if 0 < i < power.size - 1 and (power[i - 1:i + 2] > 0).all():
-        a, b, c = np.log(power[i - 1:i + 2])
-        den = a - 2 * b + c
-        shift = 0.5 * (a - c) / den if den < 0 else 0.0
-        return float((i + float(np.clip(shift, -0.5, 0.5))) * (f[1] - f[0]))
-    return float(f[i])
+    return peak
 
 
 def _last_seen(y):

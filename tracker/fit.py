@@ -216,7 +216,6 @@ class UnknownInputProblem(FitProblem):
         U = np.repeat(self.inputs[:, :, None], 1 + self.basis.shape[1], axis=2)
         U[:, column, 1:] += self.basis
         self._U = U
-        self._frame_idx_obs = self._frame_idx
         self.rotation = bool(rotation)
         self.dof = 3 * self.n_obs - 3 * self.n_points - (6 if rotation else 3) * (K - 1) - 2 * self.harmonics
         y = meas.positions[:K][:, self.keep]

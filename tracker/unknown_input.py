@@ -30,7 +30,8 @@ import math
 import numpy as np
 
 __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
-           "DRIFT_PER_SQRT_S", "PEAK_RATIO", "BAND_HZ", "fit_harmonics", "input_block_from_fit", "extend_observation",
+           "DRIFT_PER_SQRT_S", "PEAK_RATIO", "BAND_HZ", "filled_tracks", "spectral_peak",
+           "fit_harmonics", "input_block_from_fit", "extend_observation",
            "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs"]
 
 HARMONICS = 6
@@ -77,7 +78,7 @@ class HeartRate:
     points: int
 
 
-def _filled_tracks(times, positions, min_seen=0.9):
+def filled_tracks(times, positions, min_seen=0.9):
     """Tracks seen in at least ``min_seen`` of the frames, gaps filled by linear interpolation, detrended: (K, 3 P)."""
     y = np.asarray(positions, float)
     K = y.shape[0]
@@ -91,6 +92,27 @@ def _filled_tracks(times, positions, min_seen=0.9):
             s = np.interp(k, k[ok], y[ok, p, c])
             cols.append(s - np.polyval(np.polyfit(k, s, 1), k))
     return (np.stack(cols, axis=1) if cols else np.zeros((K, 0))), use.size
+
+
+def spectral_peak(Y, dt: float, band=BAND_HZ):
+    """``(peak_hz, ratio, bin_hz)`` of filled, detrended series Y (K, n) (:func:`filled_tracks`): the largest peak in
+    ``band`` of their summed Hann-windowed power spectrum, refined by parabolic interpolation of the log power, and
+    its power over the band's median; ``(None, 0, bin_hz)`` when the band holds fewer than 3 bins."""
+    K = Y.shape[0]
+    power = (np.abs(np.fft.rfft(Y * np.hanning(K)[:, None], axis=0)) ** 2).sum(axis=1)
+    f = np.fft.rfftfreq(K, dt)
+    df = float(f[1] - f[0])
+    band_idx = np.flatnonzero((f >= band[0]) & (f <= band[1]))
+    if band_idx.size < 3:
+        return None, 0.0, df
+    i = band_idx[np.argmax(power[band_idx])]
+    ratio = float(power[i] / max(np.median(power[band_idx]), 1e-300))
+    peak = float(f[i])
+    if 0 < i < power.size - 1 and (power[i - 1:i + 2] > 0).all():
+        a, b, c = np.log(power[i - 1:i + 2])
+        den = a - 2 * b + c
+        peak = float((i + (np.clip(0.5 * (a - c) / den, -0.5, 0.5) if den < 0 else 0.0)) * df)
+    return peak, ratio, df
 
 
 def harmonic_basis(t, frequency_hz: float, harmonics: int = HARMONICS) -> np.ndarray:
@@ -137,23 +159,12 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
     duration = K * dt
     if duration < MIN_BEATS / hi:
         raise NoHeartbeat(f"{duration:.3g} s: shorter than {MIN_BEATS:g} heartbeats even at {hi * 60:g} bpm")
-    Y, n_points = _filled_tracks(t, positions)
+    Y, n_points = filled_tracks(t, positions)
     if n_points == 0:
         raise NoHeartbeat("no track is seen in 90 % of the frames: no motion signal to take a heart rate from")
-    win = np.hanning(K)[:, None]
-    power = (np.abs(np.fft.rfft(Y * win, axis=0)) ** 2).sum(axis=1)
-    f = np.fft.rfftfreq(K, dt)
-    band_idx = np.flatnonzero((f >= lo) & (f <= hi))
-    if band_idx.size < 3:
+    peak, ratio, df = spectral_peak(Y, dt, band)
+    if peak is None:
         raise NoHeartbeat(f"{duration:.3g} s: too short to resolve heart rates in {lo:g}-{hi:g} Hz")
-    i = band_idx[np.argmax(power[band_idx])]
-    ratio = float(power[i] / max(np.median(power[band_idx]), 1e-300))
-    df = f[1] - f[0]
-    peak = float(f[i])
-    if 0 < i < power.size - 1 and (power[i - 1:i + 2] > 0).all():
-        a, b, c = np.log(power[i - 1:i + 2])
-        den = a - 2 * b + c
-        peak = float((i + (np.clip(0.5 * (a - c) / den, -0.5, 0.5) if den < 0 else 0.0)) * df)
     if duration * (peak + df) < MIN_BEATS:   # short even at the top of the peak's bin
         raise NoHeartbeat(f"{duration:.3g} s holds {duration * peak:.2g} heartbeats at the tracks' dominant "
                           f"frequency {peak:.3g} Hz: at least {MIN_BEATS:g} are needed")
