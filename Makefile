@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
 TORCH ?= torch==2.13.0
 
-.PHONY: test test-slow test-gpu demo demo-invivo phantom95 bench clean-venv fuzz calibrate-real measure-real
+.PHONY: test test-slow test-gpu demo demo-invivo phantom-blind phantom95 bench clean-venv fuzz calibrate-real measure-real
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -39,6 +39,11 @@ demo: $(STAMP)
 # demo's calibration): sample_sequences/work/phantom95_scene/report/
 phantom95: $(STAMP)
 	$(MAKE) -C sample_sequences phantom95 PY=$(abspath $(PY))
+
+# the demo's phantom with its recorded pressure ignored (issue 16): GE with the estimated input against the GE with
+# the pressure, sample_sequences/work/phantom_blind/report/
+phantom-blind: $(STAMP)
+	$(MAKE) -C sample_sequences phantom-blind PY=$(abspath $(PY))
 
 # the real beating heart without calibration or pressure (issue 16): sample_sequences/work/invivo/report/; another
 # recording of rectified stereo pairs with `make demo-invivo INVIVO=DIR` (see sample_sequences/Makefile for its

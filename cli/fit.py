@@ -36,12 +36,14 @@ MAX_STARTS = 1000
                    "rate from their spectrum, the input's harmonics and a rigid motion fitted); 'auto': estimate "
                    "when the file has no pressure column.")
 @click.option("--harmonics", type=Int(1, 10), default=None,
-              help="Harmonics of the heart rate in an estimated input (default 3).")
+              help="Harmonics of the heart rate in an estimated input (default 6).")
 @click.option("--patch", "patch_mode", type=click.Choice(("auto", "model", "observed")), default="auto",
               show_default=True,
               help="Rig-frame files: 'model' places the model file's patch by its surface and motion; 'observed' "
-                   "fits the patch's extent, pose and curvature to the observed surface; 'auto': observed when the "
-                   "input is estimated.")
+                   "fits the patch's extent, pose and curvature to the observed surface; 'auto': with a recorded "
+                   "input 'model'; with an estimated one 'observed' when the observed surface fits inside the model "
+                   "file's patch (an endoscope's view), else 'model' with the dominant deformation of the first "
+                   "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
 def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, patch_mode,
         as_json):
@@ -72,14 +74,11 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
         raise BadInput("--harmonics applies to an estimated input (--input estimate) only")
     if patch_mode == "observed" and meas.frame != "rig":
         raise BadInput(f"--patch observed: {measurements} is already in the patch frame (registered)")
-    observed = meas.frame == "rig" and (patch_mode == "observed" or (patch_mode == "auto" and estimate_input))
     registration = estimated_input = None
     try:
         with threadpool_limits(1):
-            if observed:
-                m, meas, registration = _observed_patch(meas, m, output)
-            elif meas.frame == "rig":
-                meas, registration = _register(meas, m, output)
+            if meas.frame == "rig":
+                m, meas, registration = _place_patch(meas, m, output, patch_mode, estimate_input)
             if estimate_input:
                 result, estimated_input = _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations,
                                                               harmonics)
@@ -110,15 +109,40 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
         log.warning("at a bound of estimation.bounds: %s (their std ignores the bound)", ", ".join(result.at_bound))
 
 
-def _register(rig_meas, m, output):
+def _place_patch(rig_meas, m, output, patch_mode, estimate_input):
+    """Bring a rig-frame set onto a patch (``--patch``): ``(model, patch-frame set, registration entry)``."""
+    import numpy as np
+
+    from heartcv.tracker.patch_fit import view_within_patch
+    from heartcv.tracker.registration import deformation_signal
+
+    if patch_mode == "observed" or (patch_mode == "auto" and estimate_input
+                                    and view_within_patch(rig_meas, m.config.geometry)):
+        return _observed_patch(rig_meas, m, output)
+    proxy = None
+    if estimate_input:  # the model's pressure column driven by the dominant deformation, any other input held
+        proxy = np.zeros((rig_meas.n_frames, len(m.input_names)))
+        proxy[:, m.input_names.index("pressure")] = deformation_signal(rig_meas)[:, 0]
+    try:
+        meas, registration = _register(rig_meas, m, output, proxy)
+    except StageFailed as exc:
+        if patch_mode == "model" or not estimate_input:
+            raise
+        log.warning("%s; fitting the patch to the observed surface instead", exc)
+        return _observed_patch(rig_meas, m, output)
+    return m, meas, registration
+
+
+def _register(rig_meas, m, output, inputs=None):
     """Register a rig-frame set onto the patch: ``(patch-frame set, registration entry of the parameters file)``;
-    StageFailed (exit 1) when the registration does not converge."""
+    StageFailed (exit 1) when the registration does not converge. ``inputs`` stand in for unrecorded ones."""
     from heartcv.tracker.registration import register_rig_measurements, registration_to_dict
 
-    meas, reg = register_rig_measurements(rig_meas, m)
+    meas, reg = register_rig_measurements(rig_meas, m, inputs=inputs)
     if meas is None:
         raise StageFailed(f"registration onto the patch did not converge ({reg.message}); nothing written to "
                           f"{output}")
+    log.info("patch placed: %s", reg.message)
     return meas, registration_to_dict(reg, rig_meas)
 
 

@@ -37,7 +37,8 @@ from .geometry import PatchGeometry
 from .measurements import MeasurementSet
 from .registration import MIN_POINTS, Registration, _apply, _fit_surface, _inside, _pose
 
-__all__ = ["ObservedPatch", "fit_observed_patch", "MARGIN", "QUANTILE", "geometry_to_dict", "geometry_from_dict"]
+__all__ = ["ObservedPatch", "fit_observed_patch", "MARGIN", "QUANTILE", "geometry_to_dict", "geometry_from_dict",
+           "view_extent", "view_within_patch"]
 
 MARGIN = 2.0
 """Patch extent over the observed region's extent (per axis): the view covers the central half of the patch."""
@@ -99,6 +100,28 @@ def _reference_points(meas: MeasurementSet, frames: int):
     seen = np.isfinite(meas.positions[:K, :, 0]).sum(axis=0) >= min(2, K)
     idx = np.flatnonzero(seen & np.isfinite(meas.reference).all(axis=1))
     return idx, meas.reference[idx]
+
+
+def view_extent(meas: MeasurementSet, frames: int = 10) -> np.ndarray:
+    """In-plane extent (m, larger first) of the surface seen in the first ``frames`` frames: the
+    ``[QUANTILE, 1 - QUANTILE]`` range of the reference positions along their two principal axes (zeros with fewer
+    than three points)."""
+    _, X = _reference_points(meas, frames)
+    if X.shape[0] < 3:
+        return np.zeros(2)
+    _, _, Vt = np.linalg.svd(X - np.median(X, axis=0), full_matrices=False)
+    P = (X - np.median(X, axis=0)) @ Vt[:2].T
+    ext = np.quantile(P, 1 - QUANTILE, axis=0) - np.quantile(P, QUANTILE, axis=0)
+    return np.sort(ext)[::-1]
+
+
+def view_within_patch(meas: MeasurementSet, geometry: PatchGeometry, frames: int = 10) -> bool:
+    """Whether the observed surface fits inside the model's patch (each sorted extent at most the patch's): an
+    endoscope's view of a few centimetres, onto which the patch is fitted (:func:`fit_observed_patch`), rather than
+    a view of more than the patch, in which the model's patch is placed (:mod:`tracker.registration`)."""
+    ext = view_extent(meas, frames)
+    patch = np.sort([geometry.length, geometry.width])[::-1]
+    return bool(np.all(ext <= patch))
 
 
 def _quadric(xz, y, f_scale):

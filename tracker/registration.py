@@ -46,7 +46,7 @@ from .measurements import MeasurementSet
 from .model import PatchModel
 
 __all__ = ["Registration", "register", "to_patch_frame", "register_rig_measurements", "registration_to_dict",
-           "apply_stored_registration"]
+           "apply_stored_registration", "deformation_signal"]
 
 MIN_POINTS = 6
 ALL_DOF = np.arange(6)  # pose increment: rotation vector (x, y, z), translation (x, y, z), patch frame
@@ -168,7 +168,7 @@ class _Data:
     n_frames: int
 
 
-def _data(meas: MeasurementSet, model: PatchModel, frames: int) -> _Data:
+def _data(meas: MeasurementSet, model: PatchModel, frames: int, inputs=None) -> _Data:
     K = min(frames, meas.n_frames)
     seen = meas.seen[:K]
     rfi = meas.meta.get("reference_frame_index")
@@ -180,10 +180,13 @@ def _data(meas: MeasurementSet, model: PatchModel, frames: int) -> _Data:
     if idx.size < MIN_POINTS:
         raise InputError(None, f"registration onto the patch needs at least {MIN_POINTS} points seen in the first "
                                f"{K} frames, got {idx.size}", "positions")
-    try:
-        u = meas.input_columns(model.input_names)
-    except InputError:  # an input the model needs is missing: the surface alone places the patch
-        u = np.zeros((meas.n_frames, 0))
+    if inputs is not None:
+        u = np.asarray(inputs, float).reshape(meas.n_frames, -1)
+    else:
+        try:
+            u = meas.input_columns(model.input_names)
+        except InputError:  # an input the model needs is missing: the surface alone places the patch
+            u = np.zeros((meas.n_frames, 0))
     # undeformed reference (u = 0) unless the file says in which frame each point was born
     u_ref = u[rfi[idx]] if "reference_frame_index" in meas.meta else np.zeros((idx.size, u.shape[1]))
     k_idx, j_idx = np.nonzero(seen[:, idx] & (np.arange(K)[:, None] > rfi[idx][None, :]))
@@ -433,7 +436,7 @@ def _choose_turn(T, initial):
 # -- public --------------------------------------------------------------------------------------------
 
 def register(meas: MeasurementSet, model: PatchModel, *, frames: int = 10, initial: np.ndarray | None = None,
-             max_depth=None) -> Registration:
+             max_depth=None, inputs=None) -> Registration:
     """Fit the rigid pose of the model's patch to the points seen in the first ``frames`` frames.
 
     Parameters
@@ -451,6 +454,10 @@ def register(meas: MeasurementSet, model: PatchModel, *, frames: int = 10, initi
     max_depth : float, optional
         Points farther than this from the epicardium (m) are off the patch; default a quarter of the
         thickness, as :func:`tracker.tracking.locate_points`.
+    inputs : ndarray of shape (n_frames, n_u), optional
+        Input columns in the model's order replacing the recorded ones for the motion fit: without a recorded
+        input, :func:`deformation_signal` (the motion fit's scale ``alpha`` is free, so a signal proportional to
+        the input's change is all it needs).
 
     Returns
     -------
@@ -474,8 +481,10 @@ def register(meas: MeasurementSet, model: PatchModel, *, frames: int = 10, initi
     if not max_depth > 0:
         raise ValueError(f"max_depth: positive distance in m expected, got {max_depth}")
     initial = None if initial is None else _check_pose(initial, "initial")
-    data = _data(meas, model, int(frames))
+    data = _data(meas, model, int(frames), inputs)
     comp = _Compliance(model)
+    if inputs is not None and data.du.shape[1] != comp.values.shape[-1]:
+        raise ValueError(f"inputs: {comp.values.shape[-1]} columns expected, got {data.du.shape[1]}")
     notes = []
     moving = data.du.size > 0 and comp.scale > 0 and np.abs(data.du).max() > 0
     if not moving:
@@ -521,6 +530,33 @@ def _failure(ok, n_points, sel, footprint, rms, sol, max_depth) -> str | None:
     return None
 
 
+def deformation_signal(meas: MeasurementSet, frames: int = 10) -> np.ndarray:
+    """A stand-in for an unrecorded input in the motion fit: the dominant deformation of the first frames.
+
+    The displacements since the first frame of the points seen in every one of the first ``frames`` frames, less
+    each frame's mean displacement over the points (a rigid translation, which the motion fit's offsets absorb
+    anyway), stacked per frame into a (K, 3N) matrix; its first left singular vector times its singular value is
+    the signal, one value per frame (zero after the window). A patch loaded by one input deforms in proportion to
+    that input's change (docs/model.md "Registration"), so its time course is, up to the scale the motion fit
+    leaves free, the input's. Returns (n_frames, 1); all zeros when fewer than :data:`MIN_POINTS` points are seen
+    throughout the window (the surface alone then places the patch).
+    """
+    K = min(int(frames), meas.n_frames)
+    out = np.zeros((meas.n_frames, 1))
+    if K < 2:
+        return out
+    P = meas.positions[:K]
+    full = np.isfinite(P).all(axis=(0, 2))
+    if full.sum() < MIN_POINTS:
+        return out
+    D = P[:, full] - P[0, full]
+    D = D - D.mean(axis=1, keepdims=True)
+    U, S, _ = np.linalg.svd(D.reshape(K, -1), full_matrices=False)
+    s = U[:, 0] * S[0]
+    out[:K, 0] = s if s.sum() >= 0 else -s
+    return out
+
+
 def to_patch_frame(meas: MeasurementSet, reg: Registration) -> MeasurementSet:
     """The set in the patch frame: positions, covariances (``R C R^T``) and reference transformed; points off
     the patch (``reg.on_patch`` false) dropped, ids of the others kept; ``meta['registration']`` records the
@@ -558,7 +594,7 @@ def to_patch_frame(meas: MeasurementSet, reg: Registration) -> MeasurementSet:
 
 # -- registration as the stages use it (heartcv fit, heartcv track --params) --------------------------------
 
-def register_rig_measurements(meas: MeasurementSet, model: PatchModel, frames: int = 10):
+def register_rig_measurements(meas: MeasurementSet, model: PatchModel, frames: int = 10, inputs=None):
     """Register a rig-frame measurement set onto the model (:func:`register`) and bring it into the patch frame.
 
     Returns
@@ -573,7 +609,7 @@ def register_rig_measurements(meas: MeasurementSet, model: PatchModel, frames: i
     InputError
         Too few points, or none on the patch (no file named: the caller attaches it).
     """
-    reg = register(meas, model, frames=frames)
+    reg = register(meas, model, frames=frames, inputs=inputs)
     if not reg.converged:
         return None, reg
     return to_patch_frame(meas, reg), reg

@@ -168,7 +168,7 @@ def fake_registration(monkeypatch):
     calls = []
     state = {"converged": True}
 
-    def register(meas, model, *, frames=10, initial=None):
+    def register(meas, model, *, frames=10, initial=None, inputs=None):
         on = np.ones(meas.n_points, bool)
         on[0] = False  # pretend the first point lies off the patch
         calls.append(frames)

@@ -11,6 +11,7 @@ from heartcv.tracker.measurements import MeasurementSet
 from heartcv.tracker.registration import (
     Registration,
     apply_stored_registration,
+    deformation_signal,
     register,
     register_rig_measurements,
     registration_to_dict,
@@ -337,6 +338,33 @@ def test_without_input_change_the_surface_places_the_patch_and_the_start_its_pos
     assert abs(d) < depth_tol and tilt < tilt_tol
     np.testing.assert_allclose(st, st0, atol=2e-5)
     assert abs(turn) < np.radians(1.0) < abs(turn0)
+
+
+def test_the_dominant_deformation_stands_in_for_an_unrecorded_input(paper_model, synthetic):
+    """Issue 16: the same scene with its pressure column dropped. The first frames' dominant deformation is the
+    pressure's change up to a scale (correlation > 0.99: the patch deforms in proportion to its one input), and
+    with it as the input the registration lands within the same bounds of the truth as with the recorded one."""
+    meas, on_true, reg = synthetic
+    blind = MeasurementSet(meas.times, meas.point_ids, meas.positions, meas.covariances, meas.reference,
+                           np.zeros((meas.n_frames, 0)), (), (), "rig")
+    proxy = deformation_signal(blind, frames=10)
+    assert proxy.shape == (meas.n_frames, 1) and np.all(proxy[10:] == 0)
+    du = meas.inputs[:10, 0] - meas.inputs[0, 0]
+    assert abs(np.corrcoef(proxy[:10, 0], du)[0, 1]) > 0.99  # measured 0.998 (the dynamic part, the noise)
+    without = register(blind, paper_model)
+    assert "no input change" in without.message
+    reg2 = register(blind, paper_model, inputs=proxy)
+    assert reg2.converged, reg2.message
+    assert "no input change" not in reg2.message
+    assert_close_to_truth(reg2, paper_model.mesh.geometry, on_true.sum())
+    assert np.array_equal(reg2.on_patch, reg.on_patch)
+    with pytest.raises(ValueError, match="inputs"):
+        register(blind, paper_model, inputs=np.zeros((meas.n_frames, 2)))
+    # too few points seen throughout the window: no signal (the surface alone places the patch)
+    sparse = MeasurementSet(meas.times, meas.point_ids, np.where(np.arange(meas.n_points)[None, :, None] < 5,
+                                                                 meas.positions, np.nan),
+                            meas.covariances, meas.reference, np.zeros((meas.n_frames, 0)), (), (), "rig")
+    assert np.all(deformation_signal(sparse) == 0)
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ from heartcv.tracker.fit import UnknownInputProblem, fit
 from heartcv.tracker.geometry import PatchGeometry
 from heartcv.tracker.measurements import MeasurementSet
 from heartcv.tracker.model import build_model
-from heartcv.tracker.patch_fit import fit_observed_patch
+from heartcv.tracker.patch_fit import fit_observed_patch, view_extent, view_within_patch
 from heartcv.tracker.simulate import simulate, to_measurements
 from heartcv.tracker.tracking import run_kalman
 from heartcv.tracker.unknown_input import (
@@ -182,3 +182,7 @@ def test_observed_patch_recovers_pose_and_curvature():
     assert op.registration.on_patch.all()
     ext = sorted([op.geometry.length, op.geometry.width])
     np.testing.assert_allclose(ext, [2 * 0.016 * 0.96, 2 * 0.020 * 0.96], rtol=0.1)
+    # the view's extent (2-98 % along the principal axes) decides between fitting a patch and placing the model's
+    np.testing.assert_allclose(view_extent(meas), [0.020 * 0.96, 0.016 * 0.96], rtol=0.08)  # chords, not arcs
+    assert view_within_patch(meas, PatchGeometry(length=0.040, width=0.045))
+    assert not view_within_patch(meas, PatchGeometry(length=0.018, width=0.012))
