@@ -199,8 +199,8 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
         hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H)
     except NoHeartbeat as exc:
         raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written") from None
-    log.info("heart rate %.4g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's median",
-             hr.frequency_hz, 60 * hr.frequency_hz, hr.beats, hr.peak_ratio)
+    log.info("heart rate %.4g ± %.2g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's "
+             "median", hr.frequency_hz, hr.std_hz, 60 * hr.frequency_hz, hr.beats, hr.peak_ratio)
     cfg = m.config
     held = [n for n in cfg.estimation.estimate if n == "E"]
     fit_model = m
@@ -220,7 +220,8 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     block = input_block_from_fit(hr.frequency_hz, H, prob.dt, len(m.input_names), column, alpha, alpha_std,
                                  rigid[:, :3], meas.times[:K])
     entry = block.to_dict()
-    entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "bpm": 60 * hr.frequency_hz, "peak_hz": hr.peak_hz,
+    entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "std_hz": hr.std_hz, "bpm": 60 * hr.frequency_hz,
+                             "peak_hz": hr.peak_hz,
                              "peak_ratio": hr.peak_ratio, "beats": hr.beats, "points": hr.points},
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
                  held_fixed=["E"] if fit_model is not m else [], fit_frames=K,

@@ -37,8 +37,11 @@ LEVEL = 0.95  # NIS bands
               help="Accept estimate, truth and measurement files of different sequences (warns instead of "
                    "exit 2).")
 @click.option("--dpi", type=Int(72, 600), default=150, show_default=True, help="Resolution of the PNGs.")
+@click.option("--image", "images", multiple=True, type=click.Path(dir_okay=False),
+              help="A PNG to show in the report, copied into it (e.g. a frame of `heartcv measure --overlay` with "
+                   "the tracked points); repeatable.")
 @json_opt
-def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
+def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, as_json):
     """Compare the estimate files ESTIMATES (`heartcv track` outputs of one measurement file): one-step
     prediction error, parameter trajectories with ±2σ bands, NIS with its χ² band, error against the truth,
     step times. Writes the folder OUTPUT atomically."""
@@ -47,6 +50,8 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
 
     inputs = {"ESTIMATES" if len(estimates) == 1 else f"ESTIMATES #{i + 1}": p for i, p in enumerate(estimates)}
     inputs.update({"--truth": truth_file, "--measurements": meas_file})
+    inputs.update({f"--image #{i + 1}": p for i, p in enumerate(images)})
+    _check_images(images)
     guard_outputs({"-o/--output": output}, inputs, folders=[("-o/--output", output, PRODUCER)])
     runs = _load_estimates(estimates)
     _check_sequences(runs, allow_mixed)
@@ -62,7 +67,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, as_json):
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
     metrics.update(_provenance(runs, truth_file, meas_file))
     with atomic_folder(output, producer=PRODUCER) as tmp:
-        doc = _write_folder(tmp, metrics, runs, compared["per_run"], truth, noise, dpi, phases)
+        doc = _write_folder(tmp, metrics, runs, compared["per_run"], truth, noise, dpi, phases, images)
     if as_json:
         emit_json(dict(doc, output=output))
     else:
@@ -81,12 +86,30 @@ def _provenance(runs, truth_file, meas_file) -> dict:
             "inputs_hash": hashes}
 
 
-def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases=None) -> dict:
+def _check_images(images) -> None:
+    """Exit 2 for an --image that is missing or not a PNG."""
+    for i, p in enumerate(images):
+        path = Path(p)
+        if not path.is_file():
+            raise BadInput(f"--image #{i + 1}: {p}: no such file")
+        with open(path, "rb") as f:
+            if f.read(8) != b"\x89PNG\r\n\x1a\n":
+                raise BadInput(f"--image #{i + 1}: {p}: not a PNG file")
+
+
+def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases=None, images=()) -> dict:
     """The figures, metrics.json, summary.md and index.html into ``tmp``; returns the metrics document."""
+    import shutil
+
     from .report_doc import html, markdown
     from .report_plots import write_figures
 
-    figures = write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases)
+    figures = []
+    for i, p in enumerate(images):   # the user's images first: what was tracked, then how well
+        name = f"image_{i + 1}_{Path(p).name}"
+        shutil.copyfile(p, tmp / name)
+        figures.append((name, f"{p} (given with --image)"))
+    figures += write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases)
     metrics["figures"] = [f for f, _ in figures]
     metrics["files"] = [f for f, _ in figures] + ["metrics.json", "summary.md", "index.html"]
     doc = _jsonable(metrics)
@@ -329,7 +352,8 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
         d = {k: m[k] for k in PER_ESTIMATOR_KEYS + ("theta_truth_final", "theta_truth_correlation",
                                                          "theta_truth_coverage_2sigma")}
         d.update(estimator=est.estimator, file=str(r["path"]), steps=int(est.times.size), partial=not est.complete,
-                 estimated=list(est.meta.get("estimated", [])))
+                 estimated=list(est.meta.get("estimated", [])),
+                 **{k: est.meta.get(k) for k in ("heart_rate_hz", "heart_rate_std_hz", "heart_rate_source")})
         estimators[label] = d
     return {
         "format": REPORT_FORMAT[0], "format_version": REPORT_FORMAT[1], "heartcv_version": __version__,

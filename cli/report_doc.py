@@ -24,13 +24,17 @@ def _num(v, fmt="{:.4g}"):
 
 def _rows(doc) -> tuple[list, list]:
     """Header and rows of the per-estimator table (display units)."""
-    head = ["estimator", "steps", "pred. error mean", "pred. error std", "pred. error RMS", "truth error mean",
+    head = ["estimator", "steps", "pred. error mean", "pred. error std", "pred. error RMS", "held-out pred. error mean",
+            "truth error mean",
             "pred. truth error mean", "NIS mean / dof", "NIS in band", "step median", "step p95"]
     rows = []
     for label, e in doc["estimators"].items():
         steps = f"{e['completed_steps']}/{e['steps']}" + (" (partial)" if e["partial"] else "")
         rows.append([label, steps, mm(e["prediction_error_mean_m"]), mm(e["prediction_error_std_m"]),
-                     mm(e["prediction_error_rms_m"]), mm(e["truth_error_mean_m"]),
+                     mm(e["prediction_error_rms_m"]),
+                     mm(e.get("heldout_prediction_error_mean_m")) + (f" ({e['heldout_points']} tracks)"
+                                                                     if e.get("heldout_points") else ""),
+                     mm(e["truth_error_mean_m"]),
                      mm(e["prediction_truth_error_mean_m"]),
                      f"{_num(e['nis_mean'])} / {_num(e['nis_mean_dof'], '{:g}')}",
                      _num(e["nis_in_band_fraction"], "{:.0%}"),
@@ -61,6 +65,7 @@ def _facts(doc) -> list:
                       ("ratio_ge_to_kf_truth_error", "truth error (filtered)")):
         if doc[key] is not None:
             facts.append(f"GE / KF mean {what}: {doc[key]:.3f}.")
+    facts += _heart_rates(doc)
     tr = doc["truth"]
     facts.append(f"Truth: {tr['kind']} ({doc['inputs']['truth']})." if tr["kind"] else "Truth: none given.")
     if doc["measurement_truth_error_mean_m"] is not None:
@@ -72,6 +77,21 @@ def _facts(doc) -> list:
                  "error: of the one-step predictions. Both over the points seen in each frame, the observations "
                  "of the measurements' own error against the truth.")
     return facts
+
+
+def _heart_rates(doc) -> list:
+    """One line per distinct heart rate the runs used (an estimated input's, or the harmonic predictor's)."""
+    groups = {}
+    for label, e in doc["estimators"].items():
+        f = e.get("heart_rate_hz")
+        if f is not None:
+            groups.setdefault((f, e.get("heart_rate_std_hz"), e.get("heart_rate_source")), []).append(label)
+    lines = []
+    for (f, std, source), labels in groups.items():
+        band = "" if std is None else f" ± {60 * std:.2g}"
+        lines.append(f"Heart rate: {60 * f:.4g}{band} bpm ({f:.4g} Hz{'' if std is None else f' ± {std:.2g}'}; "
+                     f"{source or 'source not recorded'}), held constant by {', '.join(labels)}.")
+    return lines
 
 
 def markdown(doc, figures) -> str:

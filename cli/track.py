@@ -120,11 +120,18 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     heldout = _heldout(m, meas, holdout, seed, measurements)
     if holdout:
         meta.update(holdout=holdout, seed=seed)
+    rate = _fitted_heart_rate(fitted)
     if estimator in BASELINES:
+        use_fit = estimator == "harmonic" and heart_rate_hz is None and rate
+        if use_fit:
+            heart_rate_hz = rate["heart_rate_hz"]   # the fit's rate (from its frames), not the whole sequence's
         est = _baseline(m, meas, estimator, heart_rate_hz, measurements, heldout)
+        if use_fit:
+            meta.update(rate)
         write_estimates(output, est, meta)
-        _report(est, estimator, output, as_json)
+        _report(est, estimator, output, as_json, meta)
         return
+    meta.update(rate)
     if references == "auto":
         references = "estimate" if str(meas.meta.get("reference", "")).startswith(FIT_REFERENCES) else "fixed"
     try:
@@ -139,7 +146,20 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
     write_estimates(output, est, meta)
-    _report(est, estimator, output, as_json)
+    _report(est, estimator, output, as_json, meta)
+
+
+def _fitted_heart_rate(fitted) -> dict:
+    """``heart_rate_hz``, ``heart_rate_std_hz`` and ``heart_rate_source`` of a parameters file's estimated input
+    (empty without one); recorded in the estimate file's meta for the report."""
+    entry = None if fitted is None else fitted.estimated_input
+    if not isinstance(entry, dict) or "frequency_hz" not in entry:
+        return {}
+    hr = entry.get("heart_rate") if isinstance(entry.get("heart_rate"), dict) else {}
+    std = hr.get("std_hz")
+    return {"heart_rate_hz": float(entry["frequency_hz"]),
+            "heart_rate_std_hz": float(std) if isinstance(std, (int, float)) else None,
+            "heart_rate_source": "parameters file (heartcv fit, the tracks' spectrum)"}
 
 
 def _check_scope(estimator, nodes, truncation, joseph=False, heart_rate_hz=None) -> None:
@@ -339,8 +359,8 @@ def _diverged(exc, estimator, meas, meta, part, output) -> str:
             f"non-finite{where}; no estimate file written to {output}")
 
 
-def _report(est, estimator, output, as_json) -> None:
-    """The summary: JSON on stdout, or one INFO line."""
+def _report(est, estimator, output, as_json, meta=None) -> None:
+    """The summary: JSON on stdout, or one INFO line (``meta``: what the stage adds to the file's meta)."""
     import math
 
     from heartcv.tracker.metrics import nis_statistics, step_time_statistics
@@ -363,7 +383,7 @@ def _report(est, estimator, output, as_json) -> None:
         "estimated": list(est.meta.get("estimated", [])),
         "references": est.meta.get("references", "fixed"),
         "adaptation": est.meta.get("adaptation"),
-        "heart_rate_hz": est.meta.get("heart_rate_hz"),
+        "heart_rate_hz": dict(est.meta, **(meta or {})).get("heart_rate_hz"),
         "heldout_points": len(est.meta.get("heldout_points") or []),
         "output": output,
     }

@@ -69,6 +69,9 @@ class HeartRate:
     peak_ratio : float       the peak's power over the band's median power
     beats : float            heartbeats in the frames used
     points : int             points used (seen in at least 90 % of the frames)
+    std_hz : float           standard error of ``frequency_hz``: the profile curvature of the harmonic fit's residual
+                             sum of squares, ``sqrt(2 s^2 / RSS''(f))`` with ``s^2 = RSS / (K - 2H - 2)`` (white
+                             residuals assumed; residuals correlated over frames make it optimistic)
     """
 
     frequency_hz: float
@@ -76,6 +79,7 @@ class HeartRate:
     peak_ratio: float
     beats: float
     points: int
+    std_hz: float = float("nan")
 
 
 def filled_tracks(times, positions, min_seen=0.9):
@@ -181,7 +185,18 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
     if beats < MIN_BEATS - 1e-9:
         raise NoHeartbeat(f"{duration:.3g} s holds {beats:.2g} heartbeats at the tracks' heart rate {res.x:.4g} Hz: "
                           f"at least {MIN_BEATS:g} are needed")
-    return HeartRate(float(res.x), peak, ratio, beats, int(n_points))
+    return HeartRate(float(res.x), peak, ratio, beats, int(n_points), _frequency_std(tt, s, float(res.x), harmonics))
+
+
+def _frequency_std(t, s, f, harmonics) -> float:
+    """Standard error of the frequency of a harmonic least-squares fit from the profile RSS's curvature."""
+    dof = t.size - 2 * harmonics - 2
+    rss = _harmonic_rss(t, s, f, harmonics)
+    if dof < 1 or rss <= 0:
+        return float("nan")
+    h = 1e-2 / max(float(t[-1] - t[0]), 1e-9)   # a hundredth of the frequency resolution
+    curv = (_harmonic_rss(t, s, f + h, harmonics) - 2 * rss + _harmonic_rss(t, s, f - h, harmonics)) / (h * h)
+    return float(math.sqrt(2.0 * rss / dof / curv)) if curv > 0 else float("nan")
 
 
 def fit_harmonics(t, series, frequency_hz: float, harmonics: int = HARMONICS):

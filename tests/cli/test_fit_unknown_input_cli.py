@@ -52,6 +52,36 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     err_kf = np.nanmean(np.linalg.norm(e.predictions[1:] - m.positions[1:], axis=-1))
     err_hold = np.nanmean(np.linalg.norm(read_estimates(hold).predictions[1:] - m.positions[1:], axis=-1))
     assert err_kf < err_hold
+    # the heart rate travels with the runs that use it: its standard error from the fit, the harmonic at the fit's
+    # rate, none for hold; the report names it and shows the user's image
+    hr = p.estimated_input["heart_rate"]
+    assert 0 < hr["std_hz"] < 0.01 and abs(hr["frequency_hz"] - 1.0) < 5 * hr["std_hz"] + 1e-3
+    assert e.meta["heart_rate_hz"] == hr["frequency_hz"] and e.meta["heart_rate_std_hz"] == hr["std_hz"]
+    assert "heart_rate_hz" not in read_estimates(hold).meta
+    harm = str(tmp_path / "harmonic.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator",
+                                    "harmonic", "-o", harm, "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["heart_rate_hz"] == hr["frequency_hz"]
+    assert read_estimates(harm).meta["heart_rate_source"].startswith("parameters file")
+    png = tmp_path / "frame.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(16))
+    rep = str(tmp_path / "rep")
+    res = CliRunner().invoke(main, ["report", out, harm, "--measurements", blind_file, "--image", str(png),
+                                    "-o", rep, "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert doc["estimators"]["kf"]["heart_rate_std_hz"] == hr["std_hz"]
+    assert (tmp_path / "rep" / "image_1_frame.png").read_bytes() == png.read_bytes()
+    assert "image_1_frame.png" in doc["figures"]
+    summary = (tmp_path / "rep" / "summary.md").read_text()
+    assert f"Heart rate: {60 * hr['frequency_hz']:.4g} ± {60 * hr['std_hz']:.2g} bpm" in summary
+    assert "held constant by kf, harmonic" in summary
+    bad = tmp_path / "bad.png"
+    bad.write_text("not an image")
+    res = CliRunner().invoke(main, ["report", out, "--image", str(bad), "-o", str(tmp_path / "rep2")])
+    assert res.exit_code == 2 and "--image #1" in res.output and "not a PNG" in res.output
+    assert not (tmp_path / "rep2").exists()
 
 
 def test_fit_exits_1_without_a_heartbeat(tmp_path, blind_file):

@@ -153,6 +153,20 @@ def test_estimated_input_predicts_within_1p3_of_the_known_pressure():
     assert ratio < 1.3, f"estimated / known input prediction error {ratio:.3f}"
 
 
+def test_heart_rate_standard_error_matches_monte_carlo():
+    """The profile-curvature standard error of the rate against its spread over 40 noise draws (6 s at 25 fps,
+    1 mm noise on 1 mm tracks): within 0.7-1.4x (measured 1.05x), the mean within 3 sigma of the truth."""
+    fs, ss = [], []
+    for seed in range(40):
+        t, y = _tracks(1.13, K=150, noise=1e-3, seed=seed)
+        hr = estimate_heart_rate(t, y)
+        fs.append(hr.frequency_hz)
+        ss.append(hr.std_hz)
+    ratio = np.mean(ss) / np.std(fs, ddof=1)
+    assert 0.7 < ratio < 1.4, ratio
+    assert abs(np.mean(fs) - 1.13) < 3 * np.std(fs, ddof=1) / np.sqrt(40)   # unbiased: 3 sigma of the mean
+
+
 # -- the observed patch ------------------------------------------------------------------------------------------
 def test_observed_patch_recovers_pose_and_curvature():
     """Points on the central 20 x 16 mm of a curved surface (radii 40 and 25 mm) placed 30 mm in front of the
