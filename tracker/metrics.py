@@ -52,6 +52,7 @@ __all__ = [
     "systole_mask",
     "truth_in_patch_frame",
     "pose_magnitude",
+    "smooth_field_residual",
 ]
 
 
@@ -514,3 +515,56 @@ def pose_magnitude(T) -> tuple[float, float]:
     T = np.asarray(T, float)
     cos = np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(T[:3, 3]))
+
+
+def smooth_field_residual(positions, degree: int = 2, min_points: int = 30) -> np.ndarray:
+    """How far tracks move apart from any smooth motion: per frame, the mean norm of what a polynomial displacement
+    field cannot explain.
+
+    Each point's displacement since the first frame it is seen in, ``d_kp = y_kp - y_first(p)``, is fitted per frame
+    by least squares with a polynomial of total degree ``degree`` in the two principal in-plane coordinates of the
+    first positions (degree 2: 6 coefficients per axis; no dynamics, a fresh field every frame). The residual
+    contains the measurement noise of both frames (for noise N(0, σ² I₃) its mean norm is √2 σ √(8/π)) plus what no
+    smooth field explains: per-point drift, sliding tracks, motion finer than the field.
+
+    Parameters
+    ----------
+    positions : (K, P, 3) with NaN where unseen (any frame, m)
+    degree : int, 0..3
+    min_points : int    frames with fewer points seen get NaN
+
+    Returns
+    -------
+    (K,) mean residual norm per frame (m); NaN at frames with too few points or no displacement yet.
+    """
+    y = np.asarray(positions, float)
+    if y.ndim != 3 or y.shape[2] != 3:
+        raise ValueError(f"positions: (K, P, 3) expected, got {y.shape}")
+    if not 0 <= int(degree) <= 3:
+        raise ValueError(f"degree: 0..3 expected, got {degree}")
+    K, P, _ = y.shape
+    seen = np.isfinite(y).all(axis=2)
+    first = np.full((P, 3), np.nan)
+    has = seen.any(axis=0)
+    k0 = np.argmax(seen, axis=0)
+    first[has] = y[k0[has], np.flatnonzero(has)]
+    X = first[has]
+    c = X.mean(axis=0) if X.size else np.zeros(3)
+    if X.shape[0] >= 3:
+        _, _, Vt = np.linalg.svd(X - c, full_matrices=False)
+    else:
+        Vt = np.eye(3)
+    uv = (first - c) @ Vt[:2].T
+    powers = [(i, j) for i in range(int(degree) + 1) for j in range(int(degree) + 1 - i)]
+    out = np.full(K, np.nan)
+    for k in range(K):
+        ok = seen[k] & has & (k0 < k)
+        if ok.sum() < max(int(min_points), len(powers) + 1):
+            continue
+        A = np.stack([uv[ok, 0] ** i * uv[ok, 1] ** j for i, j in powers], axis=1)
+        scale = np.abs(A).max(axis=0)
+        scale[scale == 0] = 1.0
+        D = y[k, ok] - first[ok]
+        coef, *_ = np.linalg.lstsq(A / scale, D, rcond=None)
+        out[k] = float(np.linalg.norm(D - (A / scale) @ coef, axis=1).mean())
+    return out

@@ -251,3 +251,50 @@ def test_systole_mask_is_the_high_pressure_half():
     np.testing.assert_array_equal(tm.systole_mask(p), [0, 0, 1, 1, 1, 1, 0, 0, 0, 0])
     assert not tm.systole_mask(np.full(5, 7.0)).any()
     assert not tm.systole_mask(np.full(3, np.nan)).any()
+
+
+# -- smooth_field_residual (issue 16: how far tracks move apart from any smooth motion) ---------------------------
+def _field_scene(seed=0, K=40, P=400):
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(-0.01, 0.01, (P, 2))
+    X = np.column_stack([uv, np.zeros(P)]) @ Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix().T
+    t = np.arange(K)[:, None, None]
+    # a quadratic field in the first positions' plane, changing every frame
+    a = 1e-3 * np.sin(0.3 * t)
+    d = a * np.stack([1 + 40 * uv[:, 0], 3e3 * uv[:, 0] * uv[:, 1], 5e3 * uv[:, 1] ** 2], axis=1)[None]
+    return rng, X, X[None] + d
+
+
+def test_smooth_field_residual_of_a_quadratic_field_is_zero_and_of_noise_its_norm():
+    from heartcv.tracker.metrics import mean_noise_norm, smooth_field_residual
+
+    rng, X, y = _field_scene()
+    r = smooth_field_residual(y)
+    assert np.isnan(r[0]) and np.nanmax(r[1:]) < 1e-9 * np.abs(y - X).max() + 1e-15
+    sigma = 2e-5
+    r = smooth_field_residual(y + sigma * rng.standard_normal(y.shape))
+    # noise in both frames: sqrt(2) sigma sqrt(8/pi), less the 6 of 400 degrees of freedom the field takes per axis
+    np.testing.assert_allclose(np.nanmean(r[1:]), np.sqrt(2) * mean_noise_norm(sigma), rtol=0.03)
+
+
+def test_smooth_field_residual_sees_per_point_drift():
+    """Each point drifts at its own constant velocity (random direction, 5 um per frame): the residual grows
+    linearly, ~5 um x k x the mean norm of a unit Gaussian direction's share off the field (~1)."""
+    from heartcv.tracker.metrics import smooth_field_residual
+
+    rng, X, y = _field_scene(seed=1)
+    v = 5e-6 * rng.standard_normal((X.shape[0], 3)) / np.sqrt(3)
+    k = np.arange(y.shape[0])[:, None, None]
+    r = smooth_field_residual(y + k * v[None])
+    expected = np.linalg.norm(v - v.mean(axis=0), axis=1).mean()
+    np.testing.assert_allclose(r[1:] / np.arange(1, y.shape[0]), expected, rtol=0.03)
+    with pytest.raises(ValueError, match="degree"):
+        smooth_field_residual(y, degree=4)
+    with pytest.raises(ValueError, match="positions"):
+        smooth_field_residual(y[0])
+    # unseen points and late births are allowed; too few points give NaN
+    y2 = y.copy()
+    y2[:, 50:] = np.nan
+    assert np.isnan(smooth_field_residual(y2, min_points=60)).all()
