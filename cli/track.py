@@ -31,6 +31,23 @@ def partial_path(output) -> Path:
     return p.with_name(p.name[: -len(p.suffix)] + ".partial" + p.suffix if p.suffix else p.name + ".partial")
 
 
+def _track_offsets(ctx, param, value):
+    """'none' -> None, 'auto', or a positive finite standard deviation (m per frame)."""
+    import math
+
+    v = str(value).strip().lower()
+    if v in ("none", "auto"):
+        return None if v == "none" else "auto"
+    try:
+        q = float(v)
+    except ValueError:
+        raise click.BadParameter(f"'none', 'auto' or a standard deviation in metres per frame expected, got "
+                                 f"{value!r}") from None
+    if not (math.isfinite(q) and 0 < q < 1):
+        raise click.BadParameter(f"a standard deviation in (0, 1) m per frame expected, got {value!r}")
+    return q
+
+
 def _odd_nodes(ctx, param, value):
     if value is not None and value % 2 == 0:
         raise click.BadParameter(f"D must be an odd integer >= 3 (shared centre node), got {value}")
@@ -74,11 +91,17 @@ def _odd_nodes(ctx, param, value):
 @click.option("--heart-rate-hz", type=Float(0.1, 10.0), default=None,
               help="harmonic: the heart rate of the periodic predictor (default: the dominant frequency of the "
                    "tracks' motion in 0.5-4 Hz).")
+@click.option("--track-offsets", "track_offsets", default="none", show_default=True, callback=_track_offsets,
+              help="kf/ge/ukf/ekf: per-track offsets, a random walk beside the state that takes up what each point "
+                   "does and the model cannot (a track sliding on the tissue; docs/estimators.md 3.9). 'none'; "
+                   "'auto': its standard deviation per frame by maximum likelihood of the KF's innovations over the "
+                   "fitted frames (--params; else the first 100), 'none' among the candidates; or a standard "
+                   "deviation per frame in metres.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
-          adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, output, as_json):
+          adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -94,6 +117,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     from heartcv.tracker.tracking import EstimationDiverged
 
     _check_scope(estimator, nodes, truncation, joseph, heart_rate_hz)
+    if estimator in BASELINES and track_offsets is not None:
+        raise BadInput("--track-offsets applies to the model-based estimators (kf, ge, ukf, ekf) only")
     part = partial_path(output)
     guard_outputs({"-o/--output": output, "the partial file of -o": part},
                   {"MEASUREMENTS": measurements, "--model": model_file, "--params": params_file},
@@ -134,9 +159,11 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     meta.update(rate)
     if references == "auto":
         references = "estimate" if str(meas.meta.get("reference", "")).startswith(FIT_REFERENCES) else "fixed"
+    adaptation = _adaptation(adapt, adapt_random_walk, adapt_window)
     try:
+        drift = _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, input_block, meta)
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
-                   _adaptation(adapt, adapt_random_walk, adapt_window), heldout, input_block)
+                   adaptation, heldout, input_block, drift)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -145,8 +172,34 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise StageFailed(_diverged(exc, estimator, meas, meta, part, output)) from None
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
+    if "track_offsets" in meta:   # the selection beside the run's own summary of the offsets
+        meta["track_offsets"] = dict(est.meta.get("track_offsets") or {}, **meta["track_offsets"])
     write_estimates(output, est, meta)
     _report(est, estimator, output, as_json, meta)
+
+
+def _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, input_block, meta):
+    """The per-track offsets' random walk per frame (None: no offsets); 'auto' selects it by maximum likelihood
+    (:func:`tracker.tracking.select_track_drift`) and records the selection in ``meta``."""
+    from threadpoolctl import threadpool_limits
+
+    from heartcv.tracker.tracking import select_track_drift
+
+    if track_offsets is None:
+        return None
+    if track_offsets != "auto":
+        meta["track_offsets"] = {"std_per_frame_m": track_offsets, "source": "--track-offsets"}
+        return float(track_offsets)
+    frames = fitted.frames if fitted is not None and fitted.frames else 100
+    with threadpool_limits(1):
+        sel = select_track_drift(m, meas, None if fitted is None else fitted.theta, frames=frames,
+                                 references=references, adaptation=adaptation, heldout=heldout,
+                                 input_block=input_block)
+    meta["track_offsets"] = dict(sel.info(), source="maximum likelihood (--track-offsets auto)")
+    log.info("track offsets: random walk %.3g mm per frame (%.2g x the measurement sigma) by maximum likelihood "
+             "over %d frames%s", sel.std_per_frame_m * 1e3, sel.std_per_frame_m / sel.sigma_m, sel.frames,
+             "" if sel.std_per_frame_m > 0 else ": none")
+    return sel.std_per_frame_m or None
 
 
 def _fitted_heart_rate(fitted) -> dict:
@@ -329,7 +382,7 @@ def _adaptation(adapt, random_walk, window):
 
 
 def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation,
-         heldout=None, input_block=None):
+         heldout=None, input_block=None, drift=None):
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker.joint import run_joint
@@ -339,12 +392,12 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
         if estimator == "kf":
             return run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph,
                               references=references, adaptation=adaptation, heldout=heldout,
-                              input_block=input_block)
+                              input_block=input_block, drift=drift)
         with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
                 if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
             return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
                              progress=lambda done, total: bar.update(1), references=references,
-                             adaptation=adaptation, heldout=heldout, input_block=input_block)
+                             adaptation=adaptation, heldout=heldout, input_block=input_block, drift=drift)
 
 
 def _diverged(exc, estimator, meas, meta, part, output) -> str:

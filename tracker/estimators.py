@@ -124,9 +124,66 @@ def holdout_points(candidates, fraction: float, rng: np.random.Generator) -> np.
     return np.sort(rng.choice(c, size=n, replace=False)) if n else np.zeros(0, int)
 
 
+class TrackOffsets:
+    """Per-track offsets ``b_p`` (3 per kept point), random walks beside the estimator's state (docs/estimators.md
+    §3.9): what a point does that the model cannot (a track sliding on the tissue, motion finer than the mesh).
+
+    Decoupled: the joint update of ``[state; b]`` is done exactly for each frame from a prior without cross-
+    covariance (``b`` enters the update as measurement noise of covariance ``P_b``, its gain is ``P_b S^-1``),
+    and afterwards the cross-covariance of ``b`` with the state and between points is dropped, keeping one 3 x 3
+    covariance per point. The state's update is therefore the estimator's own with ``R + P_b``; the cost is one
+    triangular inverse of the innovation's factor per frame.
+    """
+
+    def __init__(self, n_points: int, std_per_frame: float):
+        if not (np.isfinite(std_per_frame) and std_per_frame > 0):
+            raise ValueError(f"drift: a positive standard deviation per frame expected, got {std_per_frame}")
+        self.q2 = float(std_per_frame) ** 2
+        self.mean = np.zeros(3 * n_points)
+        self.cov = np.zeros((n_points, 3, 3))
+        self.n_updates = 0
+
+    def predict(self) -> None:
+        self.cov += self.q2 * np.eye(3)
+
+    def covariance(self) -> np.ndarray:
+        """Block-diagonal (3P, 3P) covariance of the offsets."""
+        P = self.cov.shape[0]
+        out = np.zeros((P, 3, P, 3))
+        out[np.arange(P), :, np.arange(P), :] = self.cov
+        return out.reshape(3 * P, 3 * P)
+
+    def update(self, res) -> None:
+        """The offsets' part of the frame's update from the estimator's :class:`UpdateResult`."""
+        if res.dof == 0:
+            return
+        used = np.asarray(res.used).reshape(-1, 3)
+        pts = np.flatnonzero(used.all(axis=1))
+        if pts.size * 3 != res.dof:
+            raise ValueError("track offsets: a point must be seen in all three coordinates or none")
+        L = res.innovation_chol
+        L = np.linalg.cholesky(res.innovation_cov) if L is None else np.asarray(L)
+        m = L.shape[0]
+        ebar = sla.solve_triangular(L, np.asarray(res.innovation), lower=True, check_finite=False)
+        s_e = sla.solve_triangular(L, ebar, lower=True, trans="T", check_finite=False).reshape(-1, 3)  # S^-1 e
+        Linv = sla.solve_triangular(L, np.eye(m), lower=True, check_finite=False).reshape(m, -1, 3)
+        s_pp = np.einsum("kpi,kpj->pij", Linv, Linv)          # diagonal 3 x 3 blocks of S^-1 = L^-T L^-1
+        Pb = self.cov[pts]
+        b = self.mean.reshape(-1, 3)
+        b[pts] += np.einsum("pij,pj->pi", Pb, s_e)
+        Pb_new = Pb - Pb @ s_pp @ Pb
+        self.cov[pts] = 0.5 * (Pb_new + np.swapaxes(Pb_new, 1, 2))
+        self.n_updates += 1
+
+    def summary(self) -> dict:
+        b = np.linalg.norm(self.mean.reshape(-1, 3), axis=1)
+        return {"std_per_frame_m": float(np.sqrt(self.q2)), "final_norm_median_m": float(np.median(b)),
+                "final_norm_max_m": float(b.max(initial=0.0))}
+
+
 def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u, trans, Q_n, *,
                joseph: bool = False, adapt=None, progress: Callable[[int, int], None] | None = None,
-               meta: dict | None = None, heldout=None) -> EstimateSet:
+               meta: dict | None = None, heldout=None, drift: float | None = None) -> EstimateSet:
     """The frame loop shared by every estimator.
 
     Per frame k: ``k > 0``: predict (``est.predict``), constrain; record the one-step prediction
@@ -150,6 +207,10 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     heldout : (H,) int, optional    points (indices into ``meas``, among ``keep``) left out of every update: their
         one-step predictions and innovations are recorded as for the others (the model's prediction of a point it
         never saw); ``meta.heldout_points`` lists their ids
+    drift : float, optional
+        Per-track offsets (docs/estimators.md §3.9): each kept point's measurement is ``y_p = ... + b_p + v_p`` with
+        ``b_p`` a random walk of this standard deviation per coordinate and frame (m), estimated beside the state by
+        the decoupled update of :class:`TrackOffsets`. None or 0: no offsets.
 
     Raises
     ------
@@ -195,16 +256,21 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         md["log_likelihood"] = float(loglik[1:done].sum())   # innovations of frames 1 .. done-1
         if held_rows.any():
             md["heldout_points"] = [int(i) for i in np.asarray(meas.point_ids)[np.asarray(heldout)]]
+        if offsets is not None:
+            md["track_offsets"] = offsets.summary()
         return EstimateSet(est.name, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std,
                            predictions, innovations, nis, dof, trunc, step_time, done, meta=md, phi_mean=phi_mean,
                            phi_cov=phi_cov, filtered=filtered)
 
+    offsets = TrackOffsets(len(keep), drift) if drift else None
     state = prior
     for k in range(K):
         t0 = time.perf_counter()
         events = 0
         try:
             if k > 0:
+                if offsets is not None:
+                    offsets.predict()
                 q_n = Q_n if adapt is None else adapt.random_walk(k, Q_n)
                 state, info = est.predict(state, u[k - 1], u[k], q_n)
                 counters["clipped"] += info.get("clipped", 0)
@@ -215,13 +281,19 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
                 counters["low_mass"] += low
             predicted = state
             offset = (reference + trans[k]).reshape(-1)
+            if offsets is not None:
+                offset = offset + offsets.mean
             pred_y = offset + H @ state.mean[M:]
             R = block_diag_R(cov_all[k])
             if adapt is not None:
                 R = adapt.measurement_scale(k) * R
+            if offsets is not None:
+                R = R + offsets.covariance()
             y_k = np.where(held_rows, np.nan, y_all[k]) if held_rows.any() else y_all[k]
             res = update(state, y_k, Hz, R, offset, joseph=joseph)
             state = res.state
+            if offsets is not None:
+                offsets.update(res)
             counters["jitter"] += res.jitter_events
             _check_runaway(state, M, "update")
             state, ev, low = est.constrain(state)
@@ -234,7 +306,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             raise EstimationDiverged(k, result(k)) from None
         step_time[k] = time.perf_counter() - t0
         predictions[k, keep] = pred_y.reshape(-1, 3)
-        filtered[k, keep] = (offset + H @ state.mean[M:]).reshape(-1, 3)
+        filtered[k, keep] = ((reference + trans[k]).reshape(-1) + (0 if offsets is None else offsets.mean)
+                             + H @ state.mean[M:]).reshape(-1, 3)
         innovations[k, keep] = (y_all[k] - pred_y).reshape(-1, 3)
         state_mean[k] = state.mean[M:]
         state_var[k] = np.diag(state.cov)[M:]

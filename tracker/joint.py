@@ -408,7 +408,7 @@ def _theta_and_std(space: ParameterSpace, mean_n, cov_nn):
 def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *, theta0=None, prior_std=None,
               options: JointOptions | None = None, points: ObservedPoints | None = None,
               progress: Callable[[int, int], None] | None = None, references: str = "fixed",
-              adaptation=None, heldout=None, input_block=None) -> EstimateSet:
+              adaptation=None, heldout=None, input_block=None, drift: float | None = None) -> EstimateSet:
     """Run the GE, the joint UKF or the joint EKF over a measurement set.
 
     Parameters
@@ -479,4 +479,5 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
 
         adapt = NoiseAdaptation(M, dt, prior.Q_n, adaptation)
     return run_filter(filt, meas, prior.state, H, obs.reference, pts.keep, u, trans, prior.Q_n,
-                      joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout)
+                      joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout,
+                      drift=drift)

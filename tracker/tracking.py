@@ -19,7 +19,8 @@ from .kalman import GaussianState, predict
 from .measurements import EstimateSet, MeasurementSet
 from .model import Observation, PatchModel
 
-__all__ = ["ObservedPoints", "locate_points", "run_kalman", "EstimationDiverged", "check_references", "KalmanFilter"]
+__all__ = ["ObservedPoints", "locate_points", "run_kalman", "EstimationDiverged", "check_references", "KalmanFilter",
+           "DriftSelection", "select_track_drift", "first_frames", "DRIFT_GRID"]
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +148,7 @@ class KalmanFilter(Estimator):
 
 def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=False,
                points: ObservedPoints | None = None, references: str = "fixed", adaptation=None,
-               heldout=None, input_block=None) -> EstimateSet:
+               heldout=None, input_block=None, drift: float | None = None) -> EstimateSet:
     """Kalman filter with fixed ``theta`` (default: the model file's) over a measurement set (the ``kf`` variant
     of :mod:`tracker.estimators`, its frame loop :func:`tracker.estimators.run_filter`).
 
@@ -155,7 +156,8 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
     ``adaptation`` (:class:`tracker.adaptive.AdaptationOptions`) adds the model error estimated from the
     innovations to R (the KF has no random walk to adapt); ``heldout`` (indices into ``meas``) are left out of
     every update (:func:`tracker.estimators.run_filter`); ``input_block``
-    (:class:`tracker.unknown_input.InputBlock`) estimates the input and the rigid motion as states."""
+    (:class:`tracker.unknown_input.InputBlock`) estimates the input and the rigid motion as states; ``drift``
+    (m per frame) adds per-track offsets (:class:`tracker.estimators.TrackOffsets`)."""
     from .reference import augment_observation, augment_transition, reference_block
 
     check_references(references)
@@ -196,5 +198,73 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
 
         adapt = NoiseAdaptation(0, dt, np.zeros((0, 0)), adaptation)
     return run_filter(kf, meas, GaussianState(mean0, cov0), H, obs.reference, pts.keep, u, trans,
-                      np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt, heldout=heldout)
+                      np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt, heldout=heldout, drift=drift)
 
+
+
+DRIFT_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+"""Candidate random walks of the per-track offsets, per frame, in units of the median measurement σ (plus none)."""
+
+
+def first_frames(meas: MeasurementSet, frames: int) -> MeasurementSet:
+    """The set's first ``frames`` frames (every per-frame array cut; points, references and meta kept)."""
+    from dataclasses import replace
+
+    K = max(1, min(int(frames), meas.n_frames))
+    return replace(meas, times=meas.times[:K], positions=meas.positions[:K], covariances=meas.covariances[:K],
+                   inputs=meas.inputs[:K], views=None if meas.views is None else meas.views[:K],
+                   reprojection_rms=None if meas.reprojection_rms is None else meas.reprojection_rms[:K])
+
+
+@dataclass(frozen=True)
+class DriftSelection:
+    """Result of :func:`select_track_drift`: the chosen random walk per frame (m; 0: no offsets), the candidates
+    and their innovation log-likelihoods, the frames used and the σ the grid was scaled by."""
+
+    std_per_frame_m: float
+    candidates_m: tuple
+    log_likelihoods: tuple
+    frames: int
+    sigma_m: float
+
+    def info(self) -> dict:
+        return {"std_per_frame_m": self.std_per_frame_m, "frames": self.frames, "sigma_m": self.sigma_m,
+                "candidates_m": list(self.candidates_m), "log_likelihoods": list(self.log_likelihoods)}
+
+
+def select_track_drift(model: PatchModel, meas: MeasurementSet, theta=None, *, frames: int = 100,
+                       references: str = "fixed", adaptation=None, heldout=None, input_block=None,
+                       grid=DRIFT_GRID) -> DriftSelection:
+    """The per-track offsets' random walk by maximum likelihood (docs/estimators.md §3.9): the KF at ``theta``
+    over the first ``frames`` frames for no offsets and for each ``grid`` value times the median measurement σ
+    (per coordinate); the candidate with the largest innovation log-likelihood (frames 1 .. frames - 1) wins, then
+    a parabola through it and its neighbours in log σ_b refines it (kept only when it beats the grid's best). The
+    other arguments as :func:`run_kalman`."""
+    from .metrics import measurement_noise_level
+
+    sub = first_frames(meas, frames)
+    sigma = float(measurement_noise_level(sub.covariances, sub.seen))
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(None, "no finite measurement covariance in the first frames: no scale for the track "
+                               "offsets", "covariances")
+
+    def loglik(q):
+        est = run_kalman(model, sub, theta, references=references, adaptation=adaptation, heldout=heldout,
+                         input_block=input_block, drift=q or None)
+        return float(est.meta["log_likelihood"])
+
+    qs = [0.0] + [g * sigma for g in grid]
+    ll = [loglik(q) for q in qs]
+    best = int(np.argmax(ll))
+    q_best, l_best = qs[best], ll[best]
+    if 1 < best < len(qs) - 1:   # interior of the (logarithmic) grid: refine by a parabola in log q
+        x = np.log(qs[best - 1:best + 2])
+        a, b, _ = np.polyfit(x, ll[best - 1:best + 2], 2)
+        if a < 0:
+            q_ref = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
+            l_ref = loglik(q_ref)
+            qs.append(q_ref)
+            ll.append(l_ref)
+            if l_ref > l_best:
+                q_best, l_best = q_ref, l_ref
+    return DriftSelection(float(q_best), tuple(float(q) for q in qs), tuple(ll), sub.n_frames, sigma)

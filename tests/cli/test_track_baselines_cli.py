@@ -95,3 +95,33 @@ def test_holdout_selects_the_same_tracks_for_every_estimator(tmp_path, meas_file
     r = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--holdout", "0.01", "-o",
                                   str(tmp_path / "x.npz")])
     assert r.exit_code == 2 and "leave some in and some out" in r.output
+
+
+def test_track_offsets_option(tmp_path, meas_file):
+    """--track-offsets: a given walk equals the library run with it; 'auto' records the maximum-likelihood choice
+    in the file's meta and runs with it; bad values and baselines exit 2."""
+    from heartcv.cli.options import load_model
+    from heartcv.tracker.tracking import run_kalman
+
+    out = str(tmp_path / "kf.npz")
+    res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "kf", "--no-adapt",
+                                    "--track-offsets", "2e-5", "-o", out])
+    assert res.exit_code == 0, res.output
+    e = read_estimates(out)
+    lib = run_kalman(load_model(PAPER), read_measurements(meas_file), drift=2e-5)
+    np.testing.assert_allclose(e.predictions, lib.predictions, rtol=1e-10, equal_nan=True)
+    assert e.meta["track_offsets"]["std_per_frame_m"] == 2e-5 and e.meta["track_offsets"]["final_norm_max_m"] > 0
+    auto = str(tmp_path / "auto.npz")
+    res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "kf", "--track-offsets",
+                                    "auto", "-o", auto])
+    assert res.exit_code == 0, res.output
+    sel = read_estimates(auto).meta["track_offsets"]
+    assert sel["source"].startswith("maximum likelihood") and sel["frames"] == 100
+    assert sel["log_likelihoods"][sel["candidates_m"].index(sel["std_per_frame_m"])] == max(sel["log_likelihoods"])
+    for bad in ("-1e-5", "abc", "inf"):
+        res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--track-offsets", bad,
+                                        "-o", str(tmp_path / "x.npz")])
+        assert res.exit_code == 2 and "--track-offsets" in res.output, res.output
+    res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "hold", "--track-offsets",
+                                    "auto", "-o", str(tmp_path / "y.npz")])
+    assert res.exit_code == 2 and "model-based estimators" in res.output
