@@ -89,8 +89,9 @@ def _heart_rates(doc) -> list:
     lines = []
     for (f, std, source), labels in groups.items():
         band = "" if std is None else f" ± {60 * std:.2g}"
+        how = "sampled; final posterior" if source and source.startswith("sampled") else "held constant"
         lines.append(f"Heart rate: {60 * f:.4g}{band} bpm ({f:.4g} Hz{'' if std is None else f' ± {std:.2g}'}; "
-                     f"{source or 'source not recorded'}), held constant by {', '.join(labels)}.")
+                     f"{source or 'source not recorded'}), {how} by {', '.join(labels)}.")
     return lines
 
 

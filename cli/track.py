@@ -172,6 +172,10 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise StageFailed(_diverged(exc, estimator, meas, meta, part, output)) from None
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
+    if est.heart_rate is not None and est.completed_steps:   # the GE's sampled rate: its final posterior
+        f, sd = est.heart_rate[est.completed_steps - 1]
+        meta.update(heart_rate_hz=float(f), heart_rate_std_hz=float(sd),
+                    heart_rate_source="sampled by the GE (prior: the fit's rate, docs/model.md 17)")
     if "track_offsets" in meta:   # the selection beside the run's own summary of the offsets
         meta["track_offsets"] = dict(est.meta.get("track_offsets") or {}, **meta["track_offsets"])
     write_estimates(output, est, meta)
@@ -200,6 +204,16 @@ def _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, inpu
              "over %d frames%s", sel.std_per_frame_m * 1e3, sel.std_per_frame_m / sel.sigma_m, sel.frames,
              "" if sel.std_per_frame_m > 0 else ": none")
     return sel.std_per_frame_m or None
+
+
+def _rate_prior(estimator, input_block, fitted):
+    """The GE with an estimated input samples the heart rate: its prior from the fit (docs/model.md §17)."""
+    from heartcv.tracker.unknown_input import RatePrior
+
+    if estimator != "ge" or input_block is None:
+        return None
+    rate = _fitted_heart_rate(fitted)
+    return RatePrior(input_block.frequency_hz, rate.get("heart_rate_std_hz") or 0.0)
 
 
 def _fitted_heart_rate(fitted) -> dict:
@@ -397,7 +411,8 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
                 if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
             return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
                              progress=lambda done, total: bar.update(1), references=references,
-                             adaptation=adaptation, heldout=heldout, input_block=input_block, drift=drift)
+                             adaptation=adaptation, heldout=heldout, input_block=input_block, drift=drift,
+                             rate=_rate_prior(estimator, input_block, fitted))
 
 
 def _diverged(exc, estimator, meas, meta, part, output) -> str:

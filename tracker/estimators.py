@@ -234,8 +234,11 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     state_var = np.full((K, n_l), np.nan)
     theta = np.full((K, 5), np.nan)
     theta_std = np.full((K, 5), np.nan)
-    phi_mean = np.full((K, M), np.nan) if M else None
-    phi_cov = np.full((K, M, M), np.nan) if M else None
+    Mp = getattr(est, "M_theta", M)        # the physical parameters' phi (a sampled heart rate follows them)
+    phi_mean = np.full((K, Mp), np.nan) if Mp else None
+    phi_cov = np.full((K, Mp, Mp), np.nan) if Mp else None
+    rate_of = getattr(est, "heart_rate", None)
+    heart_rate = np.full((K, 2), np.nan) if rate_of is not None and getattr(est, "rate", None) is not None else None
     predictions = np.full((K, P_all, 3), np.nan)
     filtered = np.full((K, P_all, 3), np.nan)
     innovations = np.full((K, P_all, 3), np.nan)
@@ -260,7 +263,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             md["track_offsets"] = offsets.summary()
         return EstimateSet(est.name, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std,
                            predictions, innovations, nis, dof, trunc, step_time, done, meta=md, phi_mean=phi_mean,
-                           phi_cov=phi_cov, filtered=filtered)
+                           phi_cov=phi_cov, filtered=filtered, heart_rate=heart_rate)
 
     offsets = TrackOffsets(len(keep), drift) if drift else None
     state = prior
@@ -311,9 +314,11 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         innovations[k, keep] = (y_all[k] - pred_y).reshape(-1, 3)
         state_mean[k] = state.mean[M:]
         state_var[k] = np.diag(state.cov)[M:]
-        if M:
-            phi_mean[k] = state.mean[:M]
-            phi_cov[k] = state.cov[:M, :M]
+        if Mp:
+            phi_mean[k] = state.mean[:Mp]
+            phi_cov[k] = state.cov[:Mp, :Mp]
+        if heart_rate is not None:
+            heart_rate[k] = rate_of(state)
         theta[k], theta_std[k] = est.parameters(state)
         nis[k] = res.nis
         loglik[k] = res.log_likelihood

@@ -104,7 +104,7 @@ class JointPrior:
 
 
 def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, dt=None,
-                input_block=None) -> JointPrior:
+                input_block=None, rate=None) -> JointPrior:
     """Prior of the joint state: ``x_n ~ N(phi(theta0), diag(prior_std^2))`` and the kinematic state at the
     equilibrium of the (uncertain) parameters, ``x_l = x_static(phi) + e``, ``e ~ N(0, C_l0)``, linearised at
     ``phi0``: mean ``x_static(phi0)``, ``C_ln = J C_nn``, ``C_ll = C_l0 + J C_nn J^T`` with
@@ -123,6 +123,9 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     dt : float, optional
         Frame interval of the sequence: the random walk ``Q_n`` is the model file's per frame of ``dt``
         (:meth:`tracker.config.ModelConfig.random_walk_std_phi`); None: per frame at the model file's rate.
+    rate : tracker.unknown_input.RatePrior, optional
+        With an ``input_block``: the log heart rate as one more sampled parameter, after the M of the space
+        (uncorrelated in the prior; its walk per frame of ``dt``).
     """
     cfg = model.config
     space = cfg.parameter_space()
@@ -173,6 +176,19 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
         C_full[M:, M:] = C_l
         C = C_full
         Q_l = extend_noise(Q_l, input_block)
+    if rate is not None:
+        if input_block is None or dt is None:
+            raise ValueError("heart rate: a sampled rate needs an estimated input (input_block) and dt")
+        n = C.shape[0]
+        C2 = np.zeros((n + 1, n + 1))
+        C2[:M, :M], C2[:M, M + 1:], C2[M + 1:, :M], C2[M + 1:, M + 1:] = C[:M, :M], C[:M, M:], C[M:, :M], C[M:, M:]
+        C2[M, M] = rate.phi_std ** 2
+        C = C2
+        x_n = np.append(x_n, rate.phi_mean)
+        Q2 = np.zeros((M + 1, M + 1))
+        Q2[:M, :M] = Q_n
+        Q2[M, M] = rate.walk_per_frame(dt) ** 2
+        Q_n = Q2
     return JointPrior(GaussianState(np.concatenate([x_n, x_l]), C), space, Q_n, Q_l)
 
 
@@ -195,12 +211,16 @@ class JointFilter(Estimator):
         return super().__new__(cls)
 
     def __init__(self, name: str, model: PatchModel, space: ParameterSpace, dt: float, Q_n, Q_l,
-                 options: JointOptions = JointOptions(), input_block=None):
+                 options: JointOptions = JointOptions(), input_block=None, rate=None):
         if name != self.name:
             raise ValueError(f"estimator: {self.name!r} expected by {type(self).__name__}, got {name!r}")
         self.model = model
         self.space = space
-        self.M = space.dim
+        self.M_theta = space.dim                               # the physical parameters' phi ...
+        self.rate = rate                                       # ... then log f when the heart rate is sampled
+        if rate is not None and (input_block is None or self.name != "ge"):
+            raise ValueError("heart rate: sampled by the GE with an estimated input only")
+        self.M = space.dim + (rate is not None)
         self.dt = float(dt)
         self.Q_n = np.asarray(Q_n, float)
         self.Q_l = np.asarray(Q_l, float)
@@ -212,9 +232,11 @@ class JointFilter(Estimator):
         self.modal = model.config.method == "modal" and not options.dense and input_block is None
         self.family = TransitionFamily(model, dt) if self.modal else None
         lo, up = space.bounds_phi
+        if rate is not None:
+            lo, up = np.append(lo, rate.bounds_phi[0]), np.append(up, rate.bounds_phi[1])
         self.lower, self.upper = lo, up
         # nu first for the Cholesky square root (spec §7.4): only the first axis then moves nu
-        est = list(space.estimated)
+        est = list(space.estimated) + (["heart_rate"] if rate is not None else [])
         self.perm = np.array([est.index("nu")] + [i for i, n in enumerate(est) if n != "nu"]) if "nu" in est \
             else np.arange(self.M)
         self.inv_perm = np.argsort(self.perm)
@@ -261,12 +283,15 @@ class JointFilter(Estimator):
                 out[i, -m:] = T @ e
         return out
 
-    def dense_transition(self, theta, u0, u1):
-        """``(A, b)`` of one theta as dense arrays, static states included (``blkdiag(A(theta), I)``)."""
+    def dense_transition(self, theta, u0, u1, frequency_hz=None):
+        """``(A, b)`` of one theta as dense arrays, static states included (``blkdiag(A(theta), I)``); the input
+        block at ``frequency_hz`` when given (a sample of the sampled heart rate)."""
         from .reference import augment_transition
 
         s = self.model.system(theta, self.dt)
         blk = self.input_block
+        if blk is not None and frequency_hz is not None:
+            blk = blk.with_frequency(frequency_hz)
         if blk is None:
             return augment_transition(s.A, s.B0 @ u0 + s.B1 @ u1, self.static)
         from .unknown_input import extend_transition
@@ -293,7 +318,16 @@ class JointFilter(Estimator):
         return self.truncate(state)
 
     def parameters(self, state):
-        return _theta_and_std(self.space, state.mean[:self.M], state.cov[:self.M, :self.M])
+        Mt = self.M_theta
+        return _theta_and_std(self.space, state.mean[:Mt], state.cov[:Mt, :Mt])
+
+    def heart_rate(self, state):
+        """``(mean, std)`` of the sampled heart rate (Hz; delta method from log f), None when not sampled."""
+        if self.rate is None:
+            return None
+        i = self.M_theta
+        f = float(np.exp(state.mean[i]))
+        return f, f * float(np.sqrt(max(state.cov[i, i], 0.0)))
 
     def meta(self):
         return {"counters": {"eig": self.family.eig_count if self.family else 0}, "modal_path": self.modal}
@@ -315,7 +349,8 @@ class GEFilter(JointFilter):
         ss = sample(mu_n[p], C_nn[np.ix_(p, p)], D=o.nodes, variant=o.variant, sqrt=o.sqrt,
                     lower=self.lower[p], upper=self.upper[p])
         nodes = ss.nodes[:, self.inv_perm]
-        thetas = self.space.theta_from_x(nodes)
+        thetas = self.space.theta_from_x(nodes[:, :self.M_theta])
+        freqs = np.exp(nodes[:, self.M_theta]) if self.rate is not None else [None] * len(thetas)
         split = conditional_split(state, M, factor=not self.modal)
         if self.modal:
             pred = ge_predict_family(state, M, nodes, ss.weights, thetas, self.family, u0, u1, Q_n, self.Q_l,
@@ -325,7 +360,7 @@ class GEFilter(JointFilter):
                 A = np.empty((len(thetas), self.Q_l.shape[0], self.Q_l.shape[0]))
                 b = np.empty((len(thetas), self.Q_l.shape[0]))
                 for i, th in enumerate(thetas):
-                    A[i], b[i] = self.dense_transition(th, u0, u1)
+                    A[i], b[i] = self.dense_transition(th, u0, u1, freqs[i])
                 return A, b
             pred = ge_predict(state, M, nodes, ss.weights, transition, Q_n, self.Q_l, split=split)
         return pred, {"clipped": ss.clipped, "samples": ss.L, "jitter": split.jitter_events}
@@ -408,7 +443,8 @@ def _theta_and_std(space: ParameterSpace, mean_n, cov_nn):
 def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *, theta0=None, prior_std=None,
               options: JointOptions | None = None, points: ObservedPoints | None = None,
               progress: Callable[[int, int], None] | None = None, references: str = "fixed",
-              adaptation=None, heldout=None, input_block=None, drift: float | None = None) -> EstimateSet:
+              adaptation=None, heldout=None, input_block=None, drift: float | None = None,
+              rate=None) -> EstimateSet:
     """Run the GE, the joint UKF or the joint EKF over a measurement set.
 
     Parameters
@@ -463,21 +499,24 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
         block = reference_block(model, model.config.theta if theta0 is None else theta0, u_ref)
         obs = augment_observation(obs, block)
     H = obs.H if input_block is None else extend_observation(obs.H, pts.keep.size, input_block)
-    prior = joint_prior(model, u_start, theta0, prior_std, block, dt, input_block)
+    prior = joint_prior(model, u_start, theta0, prior_std, block, dt, input_block, rate)
     space = prior.space
     M = space.dim
-    filt = JointFilter(estimator, model, space, dt, prior.Q_n, prior.Q_l, options, input_block)
+    filt = JointFilter(estimator, model, space, dt, prior.Q_n, prior.Q_l, options, input_block, rate)
     meta = {"dropped_points": pts.dropped.tolist(), "joseph": options.joseph, "dt": dt,
             "estimated": list(space.estimated), "theta0": space.theta.tolist(),
             "prior_std_phi": np.sqrt(np.diag(prior.state.cov[:M, :M])).tolist(),
             "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
             "references": references, "reference_states": 0 if block is None else block.size,
             "input_states": 0 if input_block is None else input_block.size}
+    if rate is not None:
+        meta["heart_rate_prior"] = {"frequency_hz": rate.frequency_hz, "std_log": rate.phi_std,
+                                    "walk_per_frame_log": rate.walk_per_frame(dt)}
     adapt = None
     if adaptation is not None:
         from .adaptive import NoiseAdaptation
 
-        adapt = NoiseAdaptation(M, dt, prior.Q_n, adaptation)
+        adapt = NoiseAdaptation(filt.M, dt, prior.Q_n, adaptation)
     return run_filter(filt, meas, prior.state, H, obs.reference, pts.keep, u, trans, prior.Q_n,
                       joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout,
                       drift=drift)

@@ -174,6 +174,8 @@ class EstimateSet:
                                           step k, ``offset + H @ state_mean[k]`` in the frame of ``predictions``
                                           (NaN for dropped points and rows after ``completed_steps``; absent
                                           from files written before it was recorded)
+    heart_rate : (K, 2), optional         the GE with a sampled heart rate: its posterior mean and standard
+                                          deviation per step (Hz)
     """
 
     estimator: str
@@ -194,6 +196,7 @@ class EstimateSet:
     phi_mean: np.ndarray | None = None
     phi_cov: np.ndarray | None = None
     filtered: np.ndarray | None = None
+    heart_rate: np.ndarray | None = None
 
     def __post_init__(self):
         K = np.asarray(self.times).size
@@ -212,6 +215,8 @@ class EstimateSet:
         }
         if self.filtered is not None:
             expect["filtered"] = (K, P, 3)
+        if self.heart_rate is not None:
+            expect["heart_rate"] = (K, 2)
         for name, shape in expect.items():
             a = np.asarray(getattr(self, name))
             if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):

@@ -24,7 +24,7 @@ slowly varying rate as a slowly turning phase).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 
 import numpy as np
@@ -32,7 +32,8 @@ import numpy as np
 __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
            "DRIFT_PER_SQRT_S", "PEAK_RATIO", "BAND_HZ", "filled_tracks", "spectral_peak",
            "fit_harmonics", "input_block_from_fit", "extend_observation",
-           "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs"]
+           "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs", "RatePrior",
+           "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN"]
 
 HARMONICS = 6
 """Harmonics of the heart rate in the estimated input and in the rigid motion. An LV pressure pulse needs them: on
@@ -117,6 +118,46 @@ def spectral_peak(Y, dt: float, band=BAND_HZ):
         den = a - 2 * b + c
         peak = float((i + (np.clip(0.5 * (a - c) / den, -0.5, 0.5) if den < 0 else 0.0)) * df)
     return peak, ratio, df
+
+
+RATE_WALK_PER_SQRT_S = 0.02
+"""Random walk of the GE's sampled log heart rate per square-root second: a resting heart's beat-to-beat variability
+(an RMSSD of 20-50 ms at an RR interval near 1 s is 2-5 % per beat)."""
+RATE_PRIOR_MIN = 0.01
+"""Smallest prior standard deviation of the sampled log heart rate: the fit's standard error assumes white
+residuals and is optimistic (:class:`HeartRate`)."""
+
+
+@dataclass(frozen=True)
+class RatePrior:
+    """The heart rate as a sampled parameter of the GE (docs/model.md §17): ``phi = log f`` with prior
+    ``N(log f0, max(std / f0, RATE_PRIOR_MIN)^2)``, a random walk of :data:`RATE_WALK_PER_SQRT_S` per square-root
+    second and the box ``log BAND_HZ``."""
+
+    frequency_hz: float
+    std_hz: float = 0.0
+
+    def __post_init__(self):
+        if not (np.isfinite(self.frequency_hz) and BAND_HZ[0] <= self.frequency_hz <= BAND_HZ[1]):
+            raise ValueError(f"heart rate: a frequency in {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz expected, "
+                             f"got {self.frequency_hz}")
+        if not (np.isfinite(self.std_hz) and self.std_hz >= 0):
+            raise ValueError(f"heart rate: a standard deviation >= 0 expected, got {self.std_hz}")
+
+    @property
+    def phi_mean(self) -> float:
+        return math.log(self.frequency_hz)
+
+    @property
+    def phi_std(self) -> float:
+        return max(self.std_hz / self.frequency_hz, RATE_PRIOR_MIN)
+
+    @property
+    def bounds_phi(self) -> tuple:
+        return math.log(BAND_HZ[0]), math.log(BAND_HZ[1])
+
+    def walk_per_frame(self, dt: float) -> float:
+        return RATE_WALK_PER_SQRT_S * math.sqrt(dt)
 
 
 def harmonic_basis(t, frequency_hz: float, harmonics: int = HARMONICS) -> np.ndarray:
@@ -266,6 +307,10 @@ class InputBlock:
     def slices(self):
         H = self.harmonics
         return slice(0, 2 * H), slice(2 * H, 2 * H + 3), slice(2 * H + 3, 8 * H + 3)
+
+    def with_frequency(self, frequency_hz: float) -> InputBlock:
+        """The same block at another heart rate (the GE's samples of a sampled rate)."""
+        return replace(self, frequency_hz=float(frequency_hz))
 
     def transition(self) -> np.ndarray:
         """T (m, m): a rotation by ``2 pi h f dt`` per oscillator, identity for the translation."""

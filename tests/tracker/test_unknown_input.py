@@ -153,6 +153,48 @@ def test_estimated_input_predicts_within_1p3_of_the_known_pressure():
     assert ratio < 1.3, f"estimated / known input prediction error {ratio:.3f}"
 
 
+def test_the_ge_samples_the_heart_rate_and_finds_the_true_one(tmp_path):
+    """Deliverable 1: the heart rate among the GE's sampled parameters. The paper patch at 72 bpm (6 s), pressure
+    dropped, the input fitted at the right rate; the GE starts from a rate 3 % too high (prior σ 3 %). Sampled, the
+    rate comes back to within 1 % of the truth inside its 3σ band, and the GE predicts better than with the wrong
+    rate held (measured 0.176 against 0.196 mm over 10 s); the file round-trips its (K, 2) rate trace."""
+    from heartcv.tracker.io import read_estimates, write_estimates
+    from heartcv.tracker.joint import run_joint
+    from heartcv.tracker.unknown_input import RatePrior
+
+    m = _model(72.0)
+    sim = simulate(m, 6.0, np.random.default_rng(7), process_noise=False, initial_noise=False)
+    meas = to_measurements(sim)
+    blind = MeasurementSet(meas.times, meas.point_ids, meas.positions, meas.covariances, meas.reference,
+                           np.zeros((meas.n_frames, 0)), (), (), "patch")
+    K = 90
+    fm = _model(72.0, estimate=["nu"])
+    prob = UnknownInputProblem(fm, blind, 1.2, HARMONICS, 0, frames=K)
+    res = fit(fm, blind, problem=prob)
+    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    ref = dataclasses.replace(blind, reference=prob.offsets(res.theta))
+    wrong = 1.2 * 1.03
+    blk = input_block_from_fit(wrong, HARMONICS, prob.dt, 1, 0, alpha, sd, rigid, blind.times[:K])
+
+    def err(e):
+        return float(np.nanmean(np.linalg.norm(e.predictions[1:] - meas.positions[1:], axis=-1)))
+
+    held = run_joint(m, ref, "ge", theta0=res.theta, input_block=blk)
+    sampled = run_joint(m, ref, "ge", theta0=res.theta, input_block=blk, rate=RatePrior(wrong, 0.03 * wrong))
+    assert held.heart_rate is None and sampled.heart_rate.shape == (meas.n_frames, 2)
+    f, s = sampled.heart_rate[-1]
+    assert abs(f - 1.2) < min(0.012, 3 * s), (f, s)
+    assert sampled.heart_rate[0, 0] == pytest.approx(wrong, rel=0.01)
+    assert err(sampled) < err(held)
+    assert sampled.phi_mean.shape[1] == 2 and sampled.meta["estimated"] == ["E", "nu"]
+    with pytest.raises(ValueError, match="heart rate"):
+        run_joint(m, ref, "ukf", theta0=res.theta, input_block=blk, rate=RatePrior(wrong, 0.01))
+    with pytest.raises(ValueError, match="heart rate"):
+        RatePrior(7.0)
+    write_estimates(tmp_path / "ge.npz", sampled)
+    np.testing.assert_array_equal(read_estimates(tmp_path / "ge.npz").heart_rate, sampled.heart_rate)
+
+
 def test_heart_rate_standard_error_matches_monte_carlo():
     """The profile-curvature standard error of the rate against its spread over 40 noise draws (6 s at 25 fps,
     1 mm noise on 1 mm tracks): within 0.7-1.4x (measured 1.05x), the mean within 3 sigma of the truth."""
