@@ -97,11 +97,15 @@ def _odd_nodes(ctx, param, value):
                    "'auto': its standard deviation per frame by maximum likelihood of the KF's innovations over the "
                    "fitted frames (--params; else the first 100), 'none' among the candidates; or a standard "
                    "deviation per frame in metres.")
+@click.option("--sample-heart-rate/--hold-heart-rate", default=True, show_default=True,
+              help="ge with an estimated input (--params of a fit without pressure): carry the heart rate among the "
+                   "sampled parameters (docs/model.md 17), or hold it at the fit's value.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
-          adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, output, as_json):
+          adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, sample_heart_rate, output,
+          as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -163,7 +167,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     try:
         drift = _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, input_block, meta)
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
-                   adaptation, heldout, input_block, drift)
+                   adaptation, heldout, input_block, drift, sample_heart_rate)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -396,7 +400,7 @@ def _adaptation(adapt, random_walk, window):
 
 
 def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation,
-         heldout=None, input_block=None, drift=None):
+         heldout=None, input_block=None, drift=None, sample_heart_rate=True):
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker.joint import run_joint
@@ -412,7 +416,7 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
             return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
                              progress=lambda done, total: bar.update(1), references=references,
                              adaptation=adaptation, heldout=heldout, input_block=input_block, drift=drift,
-                             rate=_rate_prior(estimator, input_block, fitted))
+                             rate=_rate_prior(estimator, input_block, fitted) if sample_heart_rate else None)
 
 
 def _diverged(exc, estimator, meas, meta, part, output) -> str:

@@ -77,6 +77,20 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     summary = (tmp_path / "rep" / "summary.md").read_text()
     assert f"Heart rate: {60 * hr['frequency_hz']:.4g} ± {60 * hr['std_hz']:.2g} bpm" in summary
     assert "held constant by kf, harmonic" in summary
+    # the GE samples the heart rate by default (its trace in the file, the final posterior in the meta), or holds it
+    ge = str(tmp_path / "ge.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "ge",
+                                    "-o", ge, "--json"])
+    assert res.exit_code == 0, res.output
+    g = read_estimates(ge)
+    assert g.heart_rate.shape == (g.times.size, 2) and g.meta["heart_rate_source"].startswith("sampled by the GE")
+    assert g.meta["heart_rate_hz"] == g.heart_rate[-1, 0] == json.loads(res.stdout)["heart_rate_hz"]
+    assert abs(g.heart_rate[-1, 0] - 1.0) < 3 * g.heart_rate[-1, 1] + 1e-3
+    ge2 = str(tmp_path / "ge_hold.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "ge",
+                                    "--hold-heart-rate", "-o", ge2])
+    assert res.exit_code == 0, res.output
+    assert read_estimates(ge2).heart_rate is None and read_estimates(ge2).meta["heart_rate_hz"] == hr["frequency_hz"]
     bad = tmp_path / "bad.png"
     bad.write_text("not an image")
     res = CliRunner().invoke(main, ["report", out, "--image", str(bad), "-o", str(tmp_path / "rep2")])
