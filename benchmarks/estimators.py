@@ -468,7 +468,9 @@ def bench_estimators(*, quick: bool = False) -> dict:
             print(f"  {name:<20s} {key:>3s}: {fmt_time(med)} per step ({steps.size} steps)", flush=True)
             return rec
 
-        jobs, info = {"KF": lambda m: run_kalman(base, m)}, {}
+        # per-track offsets (docs/estimators.md 3.9): one triangular inverse of the innovation factor per frame
+        jobs, info = {"KF": lambda m: run_kalman(base, m),
+                      "KF offsets": lambda m: run_kalman(base, m, drift=1e-5)}, {}
         for key, mdl in models.items():
             opts = JointOptions.from_config(mdl.config)
             for name, which, o in (("GE D=5", "ge", opts),
@@ -484,6 +486,12 @@ def bench_estimators(*, quick: bool = False) -> dict:
 
         steps, walls, est = timed["KF"]
         kf = record("KF (run_kalman)", "-", 0, steps, walls, est, 1, 0, kf_step_flops(n_l, m_rows))
+        steps, walls, est = timed["KF offsets"]
+        kf_off = record("KF + track offsets", "-", 0, steps, walls, est, 1, 0,
+                        kf_step_flops(n_l, m_rows) + m_rows**3 / 3 + m_rows**3 / 3)   # + L^-1 and its block products
+        out["track_offsets_over_kf"] = kf_off["median_s"] / kf["median_s"]
+        print(f"  track offsets cost: {fmt_ratio(out['track_offsets_over_kf'])} the KF's step (same run, same "
+              "frames)", flush=True)
         for (name, key), (mdl, which, o) in info.items():
             steps, walls, est = timed[(name, key)]
             M = mdl.config.parameter_space().dim
