@@ -456,6 +456,8 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
         "references": est.meta.get("references", "fixed"),
         "adaptation": est.meta.get("adaptation"),
         "heart_rate_hz": dict(est.meta, **(meta or {})).get("heart_rate_hz"),
+        "track_offsets_std_per_frame_m": (dict(est.meta, **(meta or {})).get("track_offsets") or {}).get(
+            "std_per_frame_m"),
         "heldout_points": len(est.meta.get("heldout_points") or []),
         "output": output,
     }

@@ -113,9 +113,10 @@ def test_track_offsets_option(tmp_path, meas_file):
     assert e.meta["track_offsets"]["std_per_frame_m"] == 2e-5 and e.meta["track_offsets"]["final_norm_max_m"] > 0
     auto = str(tmp_path / "auto.npz")
     res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "kf", "--track-offsets",
-                                    "auto", "-o", auto])
+                                    "auto", "-o", auto, "--json"])
     assert res.exit_code == 0, res.output
     sel = read_estimates(auto).meta["track_offsets"]
+    assert json.loads(res.stdout)["track_offsets_std_per_frame_m"] == sel["std_per_frame_m"]
     assert sel["source"].startswith("maximum likelihood") and sel["frames"] == 100
     assert sel["log_likelihoods"][sel["candidates_m"].index(sel["std_per_frame_m"])] == max(sel["log_likelihoods"])
     for bad in ("-1e-5", "abc", "inf"):
