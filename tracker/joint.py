@@ -119,7 +119,8 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     block : tracker.reference.ReferenceBlock, optional
         Static reference states appended to the kinematic state (uncorrelated with the rest in the prior).
     input_block : tracker.unknown_input.InputBlock, optional
-        The estimated input and rigid motion, appended after the reference states (uncorrelated in the prior).
+        The estimated input and rigid motion, appended after the reference states (uncorrelated in the prior);
+        E's random walk is then zero (its walk and the input amplitudes' are not separable).
     dt : float, optional
         Frame interval of the sequence: the random walk ``Q_n`` is the model file's per frame of ``dt``
         (:meth:`tracker.config.ModelConfig.random_walk_std_phi`); None: per frame at the model file's rate.
@@ -170,6 +171,12 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     if input_block is not None:
         from .unknown_input import extend_noise, extend_prior
 
+        # E's walk and the input amplitudes' walk scale the same response (quasi-statically u / E): with an
+        # estimated input E is estimated as a constant (docs/model.md §17), as the fit holds it
+        if "E" in space.estimated:
+            i = space.estimated.index("E")
+            Q_n = Q_n.copy()
+            Q_n[i, :] = Q_n[:, i] = 0.0
         x_l, C_l = extend_prior(x_l, C[M:, M:], input_block)
         C_full = np.zeros((M + x_l.size, M + x_l.size))
         C_full[:C.shape[0], :C.shape[0]] = C
@@ -508,7 +515,8 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
             "prior_std_phi": np.sqrt(np.diag(prior.state.cov[:M, :M])).tolist(),
             "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
             "references": references, "reference_states": 0 if block is None else block.size,
-            "input_states": 0 if input_block is None else input_block.size}
+            "input_states": 0 if input_block is None else input_block.size,
+            "random_walk_std_phi": np.sqrt(np.diag(prior.Q_n)).tolist()}
     if rate is not None:
         meta["heart_rate_prior"] = {"frequency_hz": rate.frequency_hz, "std_log": rate.phi_std,
                                     "walk_per_frame_log": rate.walk_per_frame(dt)}

@@ -195,6 +195,22 @@ def test_the_ge_samples_the_heart_rate_and_finds_the_true_one(tmp_path):
     np.testing.assert_array_equal(read_estimates(tmp_path / "ge.npz").heart_rate, sampled.heart_rate)
 
 
+def test_with_an_estimated_input_e_does_not_walk():
+    """E's random walk and the input amplitudes' scale the same response: with an input block the joint prior's
+    walk of E is zero (nu's and a sampled rate's stay), without one it is the model file's."""
+    from heartcv.tracker.joint import joint_prior
+    from heartcv.tracker.unknown_input import RatePrior
+
+    m = _model(72.0, random_walk_std={"E": 0.1, "nu": 0.02})
+    blk = InputBlock(1.2, 1, 1 / 30, 1, 0, np.zeros(11), np.ones(11), np.full(11, 0.01))
+    u0 = np.zeros(1)
+    plain = joint_prior(m, u0, dt=1 / 30)
+    est = joint_prior(m, u0, dt=1 / 30, input_block=blk, rate=RatePrior(1.2, 0.01))
+    iE, inu = m.config.parameter_space().estimated.index("E"), m.config.parameter_space().estimated.index("nu")
+    assert plain.Q_n[iE, iE] > 0 and est.Q_n[iE, iE] == 0.0
+    assert est.Q_n[inu, inu] == plain.Q_n[inu, inu] > 0 and est.Q_n[-1, -1] > 0 and est.Q_n.shape == (3, 3)
+
+
 def test_heart_rate_standard_error_matches_monte_carlo():
     """The profile-curvature standard error of the rate against its spread over 40 noise draws (6 s at 25 fps,
     1 mm noise on 1 mm tracks): within 0.7-1.4x (measured 1.05x), the mean within 3 sigma of the truth."""
