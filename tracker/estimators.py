@@ -89,6 +89,19 @@ class Estimator:
         """Provenance of the variant's settings for the estimate file."""
         return {}
 
+    @property
+    def M_theta(self) -> int:
+        """The physical parameters' share of the parameter block (the rest: a sampled heart rate)."""
+        return self.M
+
+    @property
+    def samples_heart_rate(self) -> bool:
+        return False
+
+    def heart_rate(self, state: GaussianState):
+        """``(mean, std)`` of a sampled heart rate (Hz) at ``state``; None when the variant does not sample one."""
+        return None
+
 
 class _Runaway(FloatingPointError):
     pass
@@ -234,11 +247,10 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     state_var = np.full((K, n_l), np.nan)
     theta = np.full((K, 5), np.nan)
     theta_std = np.full((K, 5), np.nan)
-    Mp = getattr(est, "M_theta", M)        # the physical parameters' phi (a sampled heart rate follows them)
+    Mp = est.M_theta                       # the physical parameters' phi (a sampled heart rate follows them)
     phi_mean = np.full((K, Mp), np.nan) if Mp else None
     phi_cov = np.full((K, Mp, Mp), np.nan) if Mp else None
-    rate_of = getattr(est, "heart_rate", None)
-    heart_rate = np.full((K, 2), np.nan) if rate_of is not None and getattr(est, "rate", None) is not None else None
+    heart_rate = np.full((K, 2), np.nan) if est.samples_heart_rate else None
     predictions = np.full((K, P_all, 3), np.nan)
     filtered = np.full((K, P_all, 3), np.nan)
     innovations = np.full((K, P_all, 3), np.nan)
@@ -318,7 +330,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             phi_mean[k] = state.mean[:Mp]
             phi_cov[k] = state.cov[:Mp, :Mp]
         if heart_rate is not None:
-            heart_rate[k] = rate_of(state)
+            heart_rate[k] = est.heart_rate(state)
         theta[k], theta_std[k] = est.parameters(state)
         nis[k] = res.nis
         loglik[k] = res.log_likelihood

@@ -223,7 +223,7 @@ class JointFilter(Estimator):
             raise ValueError(f"estimator: {self.name!r} expected by {type(self).__name__}, got {name!r}")
         self.model = model
         self.space = space
-        self.M_theta = space.dim                               # the physical parameters' phi ...
+        self._M_theta = space.dim                              # the physical parameters' phi ...
         self.rate = rate                                       # ... then log f when the heart rate is sampled
         if rate is not None and (input_block is None or self.name != "ge"):
             raise ValueError("heart rate: sampled by the GE with an estimated input only")
@@ -327,6 +327,14 @@ class JointFilter(Estimator):
     def parameters(self, state):
         Mt = self.M_theta
         return _theta_and_std(self.space, state.mean[:Mt], state.cov[:Mt, :Mt])
+
+    @property
+    def M_theta(self) -> int:
+        return self._M_theta
+
+    @property
+    def samples_heart_rate(self) -> bool:
+        return self.rate is not None
 
     def heart_rate(self, state):
         """``(mean, std)`` of the sampled heart rate (Hz; delta method from log f), None when not sampled."""
