@@ -37,6 +37,10 @@ MAX_STARTS = 1000
                    "when the file has no pressure column.")
 @click.option("--harmonics", type=Int(1, 10), default=None,
               help="Harmonics of the heart rate in an estimated input (default 6).")
+@click.option("--respiration", type=click.Choice(("auto", "none")), default="auto", show_default=True,
+              help="An estimated input's rigid motion: 'auto' adds harmonics of a respiration rate when the fit's "
+                   "translation shows one (at least 2 breaths in the fitted frames, explaining half its variance); "
+                   "'none' leaves respiration to the random-walk translation.")
 @click.option("--patch", "patch_mode", type=click.Choice(("auto", "model", "observed")), default="auto",
               show_default=True,
               help="Rig-frame files: 'model' places the model file's patch by its surface and motion; 'observed' "
@@ -45,8 +49,8 @@ MAX_STARTS = 1000
                    "file's patch (an endoscope's view), else 'model' with the dominant deformation of the first "
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
-def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, patch_mode,
-        as_json):
+def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, respiration,
+        patch_mode, as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -81,7 +85,7 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
                 m, meas, registration = _place_patch(meas, m, output, patch_mode, estimate_input)
             if estimate_input:
                 result, estimated_input = _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations,
-                                                              harmonics)
+                                                              harmonics, respiration == "auto")
             else:
                 result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
                                  max_evaluations=max_evaluations)
@@ -181,9 +185,10 @@ def _observed_patch(rig_meas, m, output):
     return model, to_patch_frame(rig_meas, op.registration), reg
 
 
-def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics):
-    """The fit with an estimated input (heart rate from the tracks, harmonics and rigid motion profiled):
-    ``(FitResult, estimated_input entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
+def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True):
+    """The fit with an estimated input (heart rate from the tracks, harmonics and rigid motion profiled; the
+    respiration rate from the rigid motion when ``respiration`` and one is seen): ``(FitResult, estimated_input
+    entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
     from dataclasses import replace as dc_replace
 
     import numpy as np
@@ -191,7 +196,14 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     from heartcv.tracker.fit import UnknownInputProblem
     from heartcv.tracker.fit import fit as run_fit
     from heartcv.tracker.model import build_model
-    from heartcv.tracker.unknown_input import HARMONICS, NoHeartbeat, estimate_heart_rate, input_block_from_fit
+    from heartcv.tracker.unknown_input import (
+        HARMONICS,
+        NoHeartbeat,
+        Respiration,
+        estimate_heart_rate,
+        estimate_respiration,
+        input_block_from_fit,
+    )
 
     H = HARMONICS if harmonics is None else harmonics
     K = meas.n_frames if frames is None else min(frames, meas.n_frames)
@@ -217,12 +229,21 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     if not result.converged:
         return result, None
     alpha, alpha_std, rigid = prob.input_solution(result.theta, result.reduced_chi2)
+    resp = estimate_respiration(meas.times[:K], rigid[:, :3], hr.frequency_hz, heart_harmonics=H) if respiration \
+        else Respiration(None, reason="--respiration none")
+    if resp.seen:
+        log.info("respiration %.3g ± %.2g Hz (%.1f per minute) from the fit's rigid motion: %.1f breaths, its "
+                 "harmonics explain %.0f %% of the translation", resp.frequency_hz, resp.std_hz,
+                 60 * resp.frequency_hz, resp.cycles, 100 * resp.explained)
+    else:
+        log.info("no respiration rate: %s (the random-walk translation takes it up)", resp.reason)
     block = input_block_from_fit(hr.frequency_hz, H, prob.dt, len(m.input_names), column, alpha, alpha_std,
-                                 rigid[:, :3], meas.times[:K])
+                                 rigid[:, :3], meas.times[:K], respiration_hz=resp.frequency_hz)
     entry = block.to_dict()
     entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "std_hz": hr.std_hz, "bpm": 60 * hr.frequency_hz,
                              "peak_hz": hr.peak_hz,
                              "peak_ratio": hr.peak_ratio, "beats": hr.beats, "points": hr.points},
+                 respiration=resp.to_dict(),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
                  held_fixed=["E"] if fit_model is not m else [], fit_frames=K,
                  translation_std_m=[float(v) for v in np.std(rigid[:, :3], axis=0)])
@@ -259,6 +280,8 @@ def _summary(result, output) -> dict:
         "patch": None if result.registration is None else result.registration.get("patch"),
         "heart_rate_hz": None if result.estimated_input is None else result.estimated_input["frequency_hz"],
         "input_amplitudes_pa": None if result.estimated_input is None else result.estimated_input["amplitudes_pa"],
+        "respiration_hz": None if result.estimated_input is None
+        else (result.estimated_input.get("respiration") or {}).get("frequency_hz"),
         "output": output,
     }
     return summary

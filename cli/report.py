@@ -353,7 +353,8 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
                                                          "theta_truth_coverage_2sigma")}
         d.update(estimator=est.estimator, file=str(r["path"]), steps=int(est.times.size), partial=not est.complete,
                  estimated=list(est.meta.get("estimated", [])),
-                 **{k: est.meta.get(k) for k in ("heart_rate_hz", "heart_rate_std_hz", "heart_rate_source")})
+                 **{f"{r}_{k}": est.meta.get(f"{r}_{k}") for r in ("heart_rate", "respiration_rate")
+                    for k in ("hz", "std_hz", "source")})
         estimators[label] = d
     return {
         "format": REPORT_FORMAT[0], "format_version": REPORT_FORMAT[1], "heartcv_version": __version__,

@@ -80,18 +80,20 @@ def _facts(doc) -> list:
 
 
 def _heart_rates(doc) -> list:
-    """One line per distinct heart rate the runs used (an estimated input's, or the harmonic predictor's)."""
-    groups = {}
-    for label, e in doc["estimators"].items():
-        f = e.get("heart_rate_hz")
-        if f is not None:
-            groups.setdefault((f, e.get("heart_rate_std_hz"), e.get("heart_rate_source")), []).append(label)
+    """One line per distinct heart rate (and respiration rate) the runs used (an estimated input's, or the harmonic
+    predictor's)."""
     lines = []
-    for (f, std, source), labels in groups.items():
-        band = "" if std is None else f" ± {60 * std:.2g}"
-        how = "sampled; final posterior" if source and source.startswith("sampled") else "held constant"
-        lines.append(f"Heart rate: {60 * f:.4g}{band} bpm ({f:.4g} Hz{'' if std is None else f' ± {std:.2g}'}; "
-                     f"{source or 'source not recorded'}), {how} by {', '.join(labels)}.")
+    for key, title, unit in (("heart_rate", "Heart rate", "bpm"), ("respiration_rate", "Respiration rate", "/min")):
+        groups = {}
+        for label, e in doc["estimators"].items():
+            f = e.get(f"{key}_hz")
+            if f is not None:
+                groups.setdefault((f, e.get(f"{key}_std_hz"), e.get(f"{key}_source")), []).append(label)
+        for (f, std, source), labels in groups.items():
+            band = "" if std is None else f" ± {60 * std:.2g}"
+            how = "sampled; final posterior" if source and source.startswith("sampled") else "held constant"
+            lines.append(f"{title}: {60 * f:.4g}{band} {unit} ({f:.4g} Hz{'' if std is None else f' ± {std:.2g}'}; "
+                         f"{source or 'source not recorded'}), {how} by {', '.join(labels)}.")
     return lines
 
 

@@ -367,21 +367,24 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
              "estimator with its ±2σ band" + (" and the truth (dashed)" if tr else "")
              + ("; shaded: systole (the measured pressure above the midpoint of its range), unshaded: diastole."
                 if phases is not None and np.any(phases[1]) else "."))
-    rates = {}
-    for k, r in runs.items():   # the heart rate per run: the GE's sampled posterior, else the constant it used
-        e, t = r["est"], np.asarray(r["est"].times, float)
-        c = e.completed_steps
-        if e.heart_rate is not None:
-            hr = np.asarray(e.heart_rate, float)[:c]
-            rates[k] = (t[:c], 60 * hr[:, 0], 60 * hr[:, 1])
-        elif isinstance(e.meta.get("heart_rate_hz"), (int, float)):
-            sd = e.meta.get("heart_rate_std_hz")
-            sd = float(sd) if isinstance(sd, (int, float)) else 0.0
-            rates[k] = (t[:c], np.full(c, 60 * float(e.meta["heart_rate_hz"])), np.full(c, 60 * sd))
-    if rates:
-        save(parameter_figure("heart rate", "bpm", rates, colors), "heart_rate.png",
-             "Heart rate: the GE's sampled posterior mean with its ±2σ band where it samples the rate; a constant "
-             "(the fit's, with its standard error) for the runs that hold it.")
+    for key, unit in (("heart_rate", "bpm"), ("respiration_rate", "per min")):
+        rates = {}
+        for k, r in runs.items():   # the rate per run: the GE's sampled posterior, else the constant it used
+            e, t = r["est"], np.asarray(r["est"].times, float)
+            c = e.completed_steps
+            trace = getattr(e, key)
+            if trace is not None:
+                hr = np.asarray(trace, float)[:c]
+                rates[k] = (t[:c], 60 * hr[:, 0], 60 * hr[:, 1])
+            elif isinstance(e.meta.get(f"{key}_hz"), (int, float)):
+                sd = e.meta.get(f"{key}_std_hz")
+                sd = float(sd) if isinstance(sd, (int, float)) else 0.0
+                rates[k] = (t[:c], np.full(c, 60 * float(e.meta[f"{key}_hz"])), np.full(c, 60 * sd))
+        if rates:
+            title = key.replace("_", " ")
+            save(parameter_figure(title, unit, rates, colors), f"{key}.png",
+                 f"{title.capitalize()}: the GE's sampled posterior mean with its ±2σ band where it samples the "
+                 "rate; a constant (the fit's, with its standard error) for the runs that hold it.")
     with_nis = {k: (p["times"], p["nis"], p["nis_dof"], per[k]["nis_mean"] / per[k]["nis_mean_dof"])
                 for k, p in ps.items() if per[k]["nis_steps"]}
     if with_nis:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 import sys
 
@@ -98,8 +99,9 @@ def _odd_nodes(ctx, param, value):
                    "fitted frames (--params; else the first 100), 'none' among the candidates; or a standard "
                    "deviation per frame in metres.")
 @click.option("--sample-heart-rate/--hold-heart-rate", default=True, show_default=True,
-              help="ge with an estimated input (--params of a fit without pressure): carry the heart rate among the "
-                   "sampled parameters (docs/model.md 17), or hold it at the fit's value.")
+              help="ge with an estimated input (--params of a fit without pressure): carry the heart rate (and the "
+                   "respiration rate, when the fit saw one) among the sampled parameters (docs/model.md 17), or "
+                   "hold them at the fit's values.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
@@ -176,10 +178,12 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise StageFailed(_diverged(exc, estimator, meas, meta, part, output)) from None
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
-    if est.heart_rate is not None and est.completed_steps:   # the GE's sampled rate: its final posterior
-        f, sd = est.heart_rate[est.completed_steps - 1]
-        meta.update(heart_rate_hz=float(f), heart_rate_std_hz=float(sd),
-                    heart_rate_source="sampled by the GE (prior: the fit's rate, docs/model.md 17)")
+    for name in ("heart_rate", "respiration_rate"):   # the GE's sampled rates: their final posteriors
+        trace = getattr(est, name)
+        if trace is not None and est.completed_steps:
+            f, sd = trace[est.completed_steps - 1]
+            meta.update({f"{name}_hz": float(f), f"{name}_std_hz": float(sd),
+                         f"{name}_source": "sampled by the GE (prior: the fit's rate, docs/model.md 17)"})
     if "track_offsets" in meta:   # the selection beside the run's own summary of the offsets
         meta["track_offsets"] = dict(est.meta.get("track_offsets") or {}, **meta["track_offsets"])
     write_estimates(output, est, meta)
@@ -211,13 +215,20 @@ def _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, inpu
 
 
 def _rate_prior(estimator, input_block, fitted):
-    """The GE with an estimated input samples the heart rate: its prior from the fit (docs/model.md §17)."""
-    from heartcv.tracker.unknown_input import RatePrior
+    """The GE with an estimated input samples the heart rate, and the respiration rate when the fit saw one: their
+    priors from the fit (docs/model.md §17)."""
+    from heartcv.tracker.unknown_input import RatePrior, respiration_prior
 
     if estimator != "ge" or input_block is None:
         return None
     rate = _fitted_heart_rate(fitted)
-    return RatePrior(input_block.frequency_hz, rate.get("heart_rate_std_hz") or 0.0)
+    rates = [RatePrior(input_block.frequency_hz, rate.get("heart_rate_std_hz") or 0.0)]
+    if input_block.respiration_harmonics:
+        resp = fitted.estimated_input.get("respiration") if fitted is not None else None
+        std = resp.get("std_hz") if isinstance(resp, dict) else None
+        rates.append(respiration_prior(input_block.respiration_hz,
+                                       float(std) if isinstance(std, (int, float)) and math.isfinite(std) else 0.0))
+    return rates
 
 
 def _fitted_heart_rate(fitted) -> dict:
@@ -228,9 +239,16 @@ def _fitted_heart_rate(fitted) -> dict:
         return {}
     hr = entry.get("heart_rate") if isinstance(entry.get("heart_rate"), dict) else {}
     std = hr.get("std_hz")
-    return {"heart_rate_hz": float(entry["frequency_hz"]),
-            "heart_rate_std_hz": float(std) if isinstance(std, (int, float)) else None,
-            "heart_rate_source": "parameters file (heartcv fit, the tracks' spectrum)"}
+    out = {"heart_rate_hz": float(entry["frequency_hz"]),
+           "heart_rate_std_hz": float(std) if isinstance(std, (int, float)) else None,
+           "heart_rate_source": "parameters file (heartcv fit, the tracks' spectrum)"}
+    resp = entry.get("respiration") if isinstance(entry.get("respiration"), dict) else {}
+    if isinstance(resp.get("frequency_hz"), (int, float)):
+        rstd = resp.get("std_hz")
+        out.update(respiration_rate_hz=float(resp["frequency_hz"]),
+                   respiration_rate_std_hz=float(rstd) if isinstance(rstd, (int, float)) else None,
+                   respiration_rate_source="parameters file (heartcv fit, the rigid motion's spectrum)")
+    return out
 
 
 def _check_scope(estimator, nodes, truncation, joseph=False, heart_rate_hz=None) -> None:
@@ -456,6 +474,7 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
         "references": est.meta.get("references", "fixed"),
         "adaptation": est.meta.get("adaptation"),
         "heart_rate_hz": dict(est.meta, **(meta or {})).get("heart_rate_hz"),
+        "respiration_rate_hz": dict(est.meta, **(meta or {})).get("respiration_rate_hz"),
         "track_offsets_std_per_frame_m": (dict(est.meta, **(meta or {})).get("track_offsets") or {}).get(
             "std_per_frame_m"),
         "heldout_points": len(est.meta.get("heldout_points") or []),

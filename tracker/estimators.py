@@ -91,15 +91,16 @@ class Estimator:
 
     @property
     def M_theta(self) -> int:
-        """The physical parameters' share of the parameter block (the rest: a sampled heart rate)."""
+        """The physical parameters' share of the parameter block (the rest: sampled rates)."""
         return self.M
 
     @property
-    def samples_heart_rate(self) -> bool:
-        return False
+    def sampled_rate_names(self) -> tuple:
+        """The rates the variant samples, of ``('heart_rate', 'respiration_rate')``; none by default."""
+        return ()
 
-    def heart_rate(self, state: GaussianState):
-        """``(mean, std)`` of a sampled heart rate (Hz) at ``state``; None when the variant does not sample one."""
+    def rate(self, state: GaussianState, name: str):
+        """``(mean, std)`` of a sampled rate (Hz) at ``state``; None when the variant does not sample it."""
         return None
 
 
@@ -250,7 +251,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     Mp = est.M_theta                       # the physical parameters' phi (a sampled heart rate follows them)
     phi_mean = np.full((K, Mp), np.nan) if Mp else None
     phi_cov = np.full((K, Mp, Mp), np.nan) if Mp else None
-    heart_rate = np.full((K, 2), np.nan) if est.samples_heart_rate else None
+    rates = {name: np.full((K, 2), np.nan) for name in est.sampled_rate_names}
     predictions = np.full((K, P_all, 3), np.nan)
     filtered = np.full((K, P_all, 3), np.nan)
     innovations = np.full((K, P_all, 3), np.nan)
@@ -275,7 +276,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             md["track_offsets"] = offsets.summary()
         return EstimateSet(est.name, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std,
                            predictions, innovations, nis, dof, trunc, step_time, done, meta=md, phi_mean=phi_mean,
-                           phi_cov=phi_cov, filtered=filtered, heart_rate=heart_rate)
+                           phi_cov=phi_cov, filtered=filtered, heart_rate=rates.get("heart_rate"),
+                           respiration_rate=rates.get("respiration_rate"))
 
     offsets = TrackOffsets(len(keep), drift) if drift else None
     state = prior
@@ -329,8 +331,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         if Mp:
             phi_mean[k] = state.mean[:Mp]
             phi_cov[k] = state.cov[:Mp, :Mp]
-        if heart_rate is not None:
-            heart_rate[k] = est.heart_rate(state)
+        for name, trace in rates.items():
+            trace[k] = est.rate(state, name)
         theta[k], theta_std[k] = est.parameters(state)
         nis[k] = res.nis
         loglik[k] = res.log_likelihood

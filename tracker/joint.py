@@ -124,9 +124,10 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     dt : float, optional
         Frame interval of the sequence: the random walk ``Q_n`` is the model file's per frame of ``dt``
         (:meth:`tracker.config.ModelConfig.random_walk_std_phi`); None: per frame at the model file's rate.
-    rate : tracker.unknown_input.RatePrior, optional
-        With an ``input_block``: the log heart rate as one more sampled parameter, after the M of the space
-        (uncorrelated in the prior; its walk per frame of ``dt``).
+    rate : tracker.unknown_input.RatePrior or sequence of them, optional
+        With an ``input_block``: the log heart rate (and the log respiration rate, second, when the block has
+        respiration oscillators) as more sampled parameters, after the M of the space (uncorrelated in the prior;
+        their walk per frame of ``dt``).
     """
     cfg = model.config
     space = cfg.parameter_space()
@@ -183,20 +184,39 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
         C_full[M:, M:] = C_l
         C = C_full
         Q_l = extend_noise(Q_l, input_block)
-    if rate is not None:
-        if input_block is None or dt is None:
-            raise ValueError("heart rate: a sampled rate needs an estimated input (input_block) and dt")
-        n = C.shape[0]
-        C2 = np.zeros((n + 1, n + 1))
-        C2[:M, :M], C2[:M, M + 1:], C2[M + 1:, :M], C2[M + 1:, M + 1:] = C[:M, :M], C[:M, M:], C[M:, :M], C[M:, M:]
-        C2[M, M] = rate.phi_std ** 2
+    rates = sampled_rates(rate, input_block)
+    if rates:
+        if dt is None:
+            raise ValueError("heart rate: a sampled rate needs the frame interval dt")
+        n, r = C.shape[0], len(rates)
+        C2 = np.zeros((n + r, n + r))
+        C2[:M, :M], C2[:M, M + r:], C2[M + r:, :M], C2[M + r:, M + r:] = C[:M, :M], C[:M, M:], C[M:, :M], C[M:, M:]
+        C2[M:M + r, M:M + r] = np.diag([p.phi_std ** 2 for p in rates])
         C = C2
-        x_n = np.append(x_n, rate.phi_mean)
-        Q2 = np.zeros((M + 1, M + 1))
+        x_n = np.append(x_n, [p.phi_mean for p in rates])
+        Q2 = np.zeros((M + r, M + r))
         Q2[:M, :M] = Q_n
-        Q2[M, M] = rate.walk_per_frame(dt) ** 2
+        Q2[M:, M:] = np.diag([p.walk_per_frame(dt) ** 2 for p in rates])
         Q_n = Q2
     return JointPrior(GaussianState(np.concatenate([x_n, x_l]), C), space, Q_n, Q_l)
+
+
+def sampled_rates(rate, input_block) -> tuple:
+    """The sampled rates as a tuple (heart rate, then respiration rate), checked against the input block: none
+    without ``rate``; the respiration rate only with the block's respiration oscillators. ValueError otherwise."""
+    if rate is None:
+        return ()
+    from .unknown_input import RatePrior
+
+    rates = (rate,) if isinstance(rate, RatePrior) else tuple(rate)
+    if input_block is None:
+        raise ValueError("heart rate: a sampled rate needs an estimated input (input_block)")
+    want = 1 + (input_block.respiration_harmonics > 0)
+    if not 1 <= len(rates) <= want or rates[0].name != "heart rate" \
+            or any(p.name != "respiration rate" for p in rates[1:]):
+        raise ValueError(f"sampled rates: the heart rate{' (and the respiration rate)' if want > 1 else ''} "
+                         f"expected, got {[p.name for p in rates]}")
+    return rates
 
 
 class JointFilter(Estimator):
@@ -224,10 +244,10 @@ class JointFilter(Estimator):
         self.model = model
         self.space = space
         self._M_theta = space.dim                              # the physical parameters' phi ...
-        self.rate = rate                                       # ... then log f when the heart rate is sampled
         if rate is not None and (input_block is None or self.name != "ge"):
             raise ValueError("heart rate: sampled by the GE with an estimated input only")
-        self.M = space.dim + (rate is not None)
+        self.rates = sampled_rates(rate, input_block)          # ... then log f (and log f_r) when sampled
+        self.M = space.dim + len(self.rates)
         self.dt = float(dt)
         self.Q_n = np.asarray(Q_n, float)
         self.Q_l = np.asarray(Q_l, float)
@@ -239,11 +259,11 @@ class JointFilter(Estimator):
         self.modal = model.config.method == "modal" and not options.dense and input_block is None
         self.family = TransitionFamily(model, dt) if self.modal else None
         lo, up = space.bounds_phi
-        if rate is not None:
-            lo, up = np.append(lo, rate.bounds_phi[0]), np.append(up, rate.bounds_phi[1])
+        for p in self.rates:
+            lo, up = np.append(lo, p.bounds_phi[0]), np.append(up, p.bounds_phi[1])
         self.lower, self.upper = lo, up
         # nu first for the Cholesky square root (spec §7.4): only the first axis then moves nu
-        est = list(space.estimated) + (["heart_rate"] if rate is not None else [])
+        est = list(space.estimated) + ["heart_rate", "respiration_rate"][:len(self.rates)]
         self.perm = np.array([est.index("nu")] + [i for i, n in enumerate(est) if n != "nu"]) if "nu" in est \
             else np.arange(self.M)
         self.inv_perm = np.argsort(self.perm)
@@ -290,15 +310,15 @@ class JointFilter(Estimator):
                 out[i, -m:] = T @ e
         return out
 
-    def dense_transition(self, theta, u0, u1, frequency_hz=None):
+    def dense_transition(self, theta, u0, u1, rates=None):
         """``(A, b)`` of one theta as dense arrays, static states included (``blkdiag(A(theta), I)``); the input
-        block at ``frequency_hz`` when given (a sample of the sampled heart rate)."""
+        block at the rates given (a sample of the sampled heart rate and respiration rate, Hz)."""
         from .reference import augment_transition
 
         s = self.model.system(theta, self.dt)
         blk = self.input_block
-        if blk is not None and frequency_hz is not None:
-            blk = blk.with_frequency(frequency_hz)
+        if blk is not None and rates is not None:
+            blk = blk.with_frequency(*rates)
         if blk is None:
             return augment_transition(s.A, s.B0 @ u0 + s.B1 @ u1, self.static)
         from .unknown_input import extend_transition
@@ -333,14 +353,15 @@ class JointFilter(Estimator):
         return self._M_theta
 
     @property
-    def samples_heart_rate(self) -> bool:
-        return self.rate is not None
+    def sampled_rate_names(self) -> tuple:
+        return ("heart_rate", "respiration_rate")[:len(self.rates)]
 
-    def heart_rate(self, state):
-        """``(mean, std)`` of the sampled heart rate (Hz; delta method from log f), None when not sampled."""
-        if self.rate is None:
+    def rate(self, state, name: str):
+        """``(mean, std)`` of a sampled rate (Hz; delta method from log f), None when not sampled."""
+        names = self.sampled_rate_names
+        if name not in names:
             return None
-        i = self.M_theta
+        i = self.M_theta + names.index(name)
         f = float(np.exp(state.mean[i]))
         return f, f * float(np.sqrt(max(state.cov[i, i], 0.0)))
 
@@ -365,7 +386,7 @@ class GEFilter(JointFilter):
                     lower=self.lower[p], upper=self.upper[p])
         nodes = ss.nodes[:, self.inv_perm]
         thetas = self.space.theta_from_x(nodes[:, :self.M_theta])
-        freqs = np.exp(nodes[:, self.M_theta]) if self.rate is not None else [None] * len(thetas)
+        freqs = np.exp(nodes[:, self.M_theta:self.M]) if self.rates else [None] * len(thetas)
         split = conditional_split(state, M, factor=not self.modal)
         if self.modal:
             pred = ge_predict_family(state, M, nodes, ss.weights, thetas, self.family, u0, u1, Q_n, self.Q_l,
@@ -525,9 +546,9 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
             "references": references, "reference_states": 0 if block is None else block.size,
             "input_states": 0 if input_block is None else input_block.size,
             "random_walk_std_phi": np.sqrt(np.diag(prior.Q_n)).tolist()}
-    if rate is not None:
-        meta["heart_rate_prior"] = {"frequency_hz": rate.frequency_hz, "std_log": rate.phi_std,
-                                    "walk_per_frame_log": rate.walk_per_frame(dt)}
+    for name, p in zip(filt.sampled_rate_names, filt.rates):
+        meta[f"{name}_prior"] = {"frequency_hz": p.frequency_hz, "std_log": p.phi_std,
+                                 "walk_per_frame_log": p.walk_per_frame(dt)}
     adapt = None
     if adaptation is not None:
         from .adaptive import NoiseAdaptation

@@ -176,6 +176,7 @@ class EstimateSet:
                                           from files written before it was recorded)
     heart_rate : (K, 2), optional         the GE with a sampled heart rate: its posterior mean and standard
                                           deviation per step (Hz)
+    respiration_rate : (K, 2), optional   the GE with a sampled respiration rate: likewise (Hz)
     """
 
     estimator: str
@@ -197,6 +198,7 @@ class EstimateSet:
     phi_cov: np.ndarray | None = None
     filtered: np.ndarray | None = None
     heart_rate: np.ndarray | None = None
+    respiration_rate: np.ndarray | None = None
 
     def __post_init__(self):
         K = np.asarray(self.times).size
@@ -215,8 +217,9 @@ class EstimateSet:
         }
         if self.filtered is not None:
             expect["filtered"] = (K, P, 3)
-        if self.heart_rate is not None:
-            expect["heart_rate"] = (K, 2)
+        for name in ("heart_rate", "respiration_rate"):
+            if getattr(self, name) is not None:
+                expect[name] = (K, 2)
         for name, shape in expect.items():
             a = np.asarray(getattr(self, name))
             if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):

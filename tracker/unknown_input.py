@@ -10,7 +10,9 @@ estimated instead:
   column (its mean is a constant displacement that the points' offsets absorb). ``heartcv fit`` profiles the
   amplitudes out of its weighted least squares (the states are linear in them for a given theta);
 * a **rigid motion** of the observed surface (respiration, the heart's bulk motion in the view): a per-frame
-  translation in the fit; in the estimators a random-walk translation plus ``H`` harmonics of ``f`` per axis.
+  translation in the fit; in the estimators a random-walk translation plus ``H`` harmonics of ``f`` per axis, and
+  when the fit's translation shows a breathing rhythm (:func:`estimate_respiration`: at least two breaths in the
+  fitted frames) ``R`` harmonics of the respiration rate ``f_r`` per axis.
 
 In the estimators the amplitudes and the rigid motion are states of the linear block (:class:`InputBlock`): each
 harmonic is a 2-D rotation ``z_h' = R(2 pi h f dt) z_h + w`` whose first component is that harmonic's value, so
@@ -18,8 +20,8 @@ given the parameters the whole linear block stays linear-Gaussian and the Rao-Bl
 exact conditional propagation of the GE hold. The transition of the kinematic state couples to the block through
 the first-order hold of the model's input, ``x' = A x + B0 u_k + B1 u_{k+1}`` with ``u_k = P0 e_k`` and
 ``u_{k+1} = P0 T e_k = P1 e_k`` (the block's own noise in ``u_{k+1}`` is neglected: a fraction ``drift sqrt(dt)``
-of the input over one frame). The heart rate stays at the fit's value (the oscillators' random walk follows a
-slowly varying rate as a slowly turning phase).
+of the input over one frame). The KF holds the fit's rates (the oscillators' random walk follows a slowly varying
+rate as a slowly turning phase); the GE samples them (:class:`RatePrior`).
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", 
            "DRIFT_PER_SQRT_S", "PEAK_RATIO", "BAND_HZ", "filled_tracks", "spectral_peak",
            "fit_harmonics", "input_block_from_fit", "extend_observation",
            "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs", "RatePrior",
-           "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN"]
+           "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN", "Respiration", "estimate_respiration", "respiration_prior",
+           "RESPIRATION_BAND_HZ", "RESPIRATION_HARMONICS", "MIN_BREATHS", "RESPIRATION_MIN_EXPLAINED"]
 
 HARMONICS = 6
 """Harmonics of the heart rate in the estimated input and in the rigid motion. An LV pressure pulse needs them: on
@@ -53,6 +56,23 @@ BAND_HZ = (0.5, 4.0)
 
 MIN_BEATS = 2.0
 """Heartbeats a recording must hold for its heart rate to be estimated."""
+
+
+RESPIRATION_BAND_HZ = (0.1, 0.7)
+"""Respiration rates searched (6-42 breaths per minute; a ventilated patient breathes at 10-20), and at most half
+the heart rate (the heartbeat's harmonics stay out of the band)."""
+
+RESPIRATION_HARMONICS = 2
+"""Harmonics of the respiration rate in the rigid motion (a breath is nearly sinusoidal; the second takes up the
+asymmetry of inspiration and expiration)."""
+
+MIN_BREATHS = 2.0
+"""Breaths the fitted frames must hold for a respiration rate to be estimated (as :data:`MIN_BEATS`)."""
+
+RESPIRATION_MIN_EXPLAINED = 0.5
+"""A breathing rhythm is seen when the harmonics of its rate explain at least this fraction of the variance of the
+fit's rigid translation (after the heartbeat's harmonics and a linear trend): white noise gives a few per cent,
+a random walk (a drifting view) mostly less than a half over two cycles of its lowest frequency."""
 
 
 class NoHeartbeat(ValueError):
@@ -128,21 +148,34 @@ RATE_PRIOR_MIN = 0.01
 residuals and is optimistic (:class:`HeartRate`)."""
 
 
+RESPIRATION_WALK_PER_SQRT_S = 0.05
+"""Random walk of the GE's sampled log respiration rate per square-root second: breath-to-breath variability is
+larger than the heart's (5-10 % per breath in spontaneous breathing; a ventilator holds its rate)."""
+RESPIRATION_PRIOR_MIN = 0.05
+"""Smallest prior standard deviation of the sampled log respiration rate: two or three breaths give a rate to
+several per cent at best."""
+
+
 @dataclass(frozen=True)
 class RatePrior:
-    """The heart rate as a sampled parameter of the GE (docs/model.md §17): ``phi = log f`` with prior
-    ``N(log f0, max(std / f0, RATE_PRIOR_MIN)^2)``, a random walk of :data:`RATE_WALK_PER_SQRT_S` per square-root
-    second and the box ``log BAND_HZ``."""
+    """A rate as a sampled parameter of the GE (docs/model.md §17): ``phi = log f`` with prior
+    ``N(log f0, max(std / f0, prior_min)^2)``, a random walk of ``walk_per_sqrt_s`` per square-root second and the
+    box ``log band``. The default is the heart rate's (:data:`RATE_WALK_PER_SQRT_S`, :data:`RATE_PRIOR_MIN`,
+    :data:`BAND_HZ`); :func:`respiration_prior` the respiration rate's."""
 
     frequency_hz: float
     std_hz: float = 0.0
+    name: str = "heart rate"
+    band: tuple = BAND_HZ
+    walk_per_sqrt_s: float = RATE_WALK_PER_SQRT_S
+    prior_min: float = RATE_PRIOR_MIN
 
     def __post_init__(self):
-        if not (np.isfinite(self.frequency_hz) and BAND_HZ[0] <= self.frequency_hz <= BAND_HZ[1]):
-            raise ValueError(f"heart rate: a frequency in {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz expected, "
-                             f"got {self.frequency_hz}")
+        lo, hi = self.band
+        if not (np.isfinite(self.frequency_hz) and lo <= self.frequency_hz <= hi):
+            raise ValueError(f"{self.name}: a frequency in {lo:g}-{hi:g} Hz expected, got {self.frequency_hz}")
         if not (np.isfinite(self.std_hz) and self.std_hz >= 0):
-            raise ValueError(f"heart rate: a standard deviation >= 0 expected, got {self.std_hz}")
+            raise ValueError(f"{self.name}: a standard deviation >= 0 expected, got {self.std_hz}")
 
     @property
     def phi_mean(self) -> float:
@@ -150,14 +183,21 @@ class RatePrior:
 
     @property
     def phi_std(self) -> float:
-        return max(self.std_hz / self.frequency_hz, RATE_PRIOR_MIN)
+        return max(self.std_hz / self.frequency_hz, self.prior_min)
 
     @property
     def bounds_phi(self) -> tuple:
-        return math.log(BAND_HZ[0]), math.log(BAND_HZ[1])
+        return math.log(self.band[0]), math.log(self.band[1])
 
     def walk_per_frame(self, dt: float) -> float:
-        return RATE_WALK_PER_SQRT_S * math.sqrt(dt)
+        return self.walk_per_sqrt_s * math.sqrt(dt)
+
+
+def respiration_prior(frequency_hz: float, std_hz: float = 0.0) -> RatePrior:
+    """The respiration rate as a sampled parameter of the GE: :data:`RESPIRATION_WALK_PER_SQRT_S`,
+    :data:`RESPIRATION_PRIOR_MIN`, the box :data:`RESPIRATION_BAND_HZ`."""
+    return RatePrior(frequency_hz, std_hz, "respiration rate", RESPIRATION_BAND_HZ, RESPIRATION_WALK_PER_SQRT_S,
+                     RESPIRATION_PRIOR_MIN)
 
 
 def harmonic_basis(t, frequency_hz: float, harmonics: int = HARMONICS) -> np.ndarray:
@@ -250,6 +290,96 @@ def fit_harmonics(t, series, frequency_hz: float, harmonics: int = HARMONICS):
     return coef[0], coef[1:], s - X @ coef
 
 
+@dataclass(frozen=True)
+class Respiration:
+    """Result of :func:`estimate_respiration`: ``frequency_hz`` None when no breathing rhythm is seen (``reason``
+    says why).
+
+    Attributes
+    ----------
+    frequency_hz : float or None  the refined respiration rate
+    std_hz : float                its standard error (profile curvature, as :class:`HeartRate`)
+    cycles : float                breaths in the frames used (at the rate, or at the band's top when none is seen)
+    explained : float             fraction of the translation's variance (after the heartbeat and a linear trend)
+                                  explained by the rate's harmonics
+    reason : str                  why none is seen ('' when one is)
+    """
+
+    frequency_hz: float | None
+    std_hz: float = float("nan")
+    cycles: float = 0.0
+    explained: float = 0.0
+    reason: str = ""
+
+    @property
+    def seen(self) -> bool:
+        return self.frequency_hz is not None
+
+    def to_dict(self) -> dict:
+        return {"frequency_hz": self.frequency_hz, "std_hz": None if not self.seen else float(self.std_hz),
+                "per_min": None if not self.seen else 60 * self.frequency_hz, "cycles": float(self.cycles),
+                "explained": float(self.explained), "reason": self.reason}
+
+
+def estimate_respiration(times, translation, heart_rate_hz: float, harmonics: int = RESPIRATION_HARMONICS,
+                         heart_harmonics: int = HARMONICS, band=RESPIRATION_BAND_HZ) -> Respiration:
+    """The respiration rate of a rigid translation (K, 3) at ``times`` (the fit's per-frame translation), or the
+    reason none is seen.
+
+    The heartbeat's ``heart_harmonics`` harmonics and a linear trend are removed; the peak of the summed power
+    spectrum of the three axes in ``band`` (capped at half the heart rate) is refined, as the heart rate's, by the
+    frequency within one bin that minimises the residual of a fit of ``harmonics`` harmonics to the translation's
+    first principal component. It counts as seen when the frames hold at least :data:`MIN_BREATHS` breaths at it
+    and its harmonics explain at least :data:`RESPIRATION_MIN_EXPLAINED` of the remaining variance of all three
+    axes. Never raises for a recording without one: a breathing rhythm is optional.
+    """
+    from scipy.optimize import minimize_scalar
+
+    t = np.asarray(times, float)
+    tr = np.asarray(translation, float)
+    K = t.size
+    if tr.shape != (K, 3) or not np.isfinite(tr).all():
+        raise ValueError(f"translation: finite (K, 3) = ({K}, 3) expected, got {tr.shape}")
+    lo, hi = band[0], min(band[1], 0.5 * float(heart_rate_hz))
+    if K < 8 or hi <= lo:
+        return Respiration(None, reason=f"{K} frames at a heart rate of {heart_rate_hz:.3g} Hz: no band left for a "
+                                        f"respiration rate")
+    dt = float(np.median(np.diff(t)))
+    duration = K * dt
+    if duration * hi < MIN_BREATHS:
+        return Respiration(None, cycles=duration * hi,
+                           reason=f"{duration:.3g} s hold fewer than {MIN_BREATHS:g} breaths even at "
+                                  f"{hi * 60:.3g} per minute")
+    _, _, resid = fit_harmonics(t, tr, heart_rate_hz, heart_harmonics)
+    k = np.arange(K)
+    Y = resid - np.polyval(np.polyfit(k, resid, 1), k[:, None]) if K > 2 else resid
+    total = float(np.sum((Y - Y.mean(axis=0)) ** 2))
+    peak, _, df = spectral_peak(Y, dt, (lo, hi))
+    if peak is None or total <= 0:
+        return Respiration(None, cycles=duration * hi,
+                           reason=f"{duration:.3g} s: too short to resolve rates in {lo:g}-{hi:.3g} Hz")
+    U, S, _ = np.linalg.svd(Y - Y.mean(axis=0), full_matrices=False)
+    s = U[:, 0] * S[0]
+    tt = t - t[0]
+    res = minimize_scalar(lambda ff: _harmonic_rss(tt, s, ff, harmonics),
+                          bounds=(max(lo, peak - df), min(hi, peak + df)), method="bounded",
+                          options={"xatol": 1e-6 * peak})
+    f = float(res.x)
+    cycles = duration * f
+    _, _, r = fit_harmonics(t, Y, f, harmonics)
+    explained = 1.0 - float(np.sum(r * r)) / total
+    if cycles < MIN_BREATHS:
+        return Respiration(None, cycles=cycles, explained=explained,
+                           reason=f"{duration:.3g} s hold {cycles:.3g} breaths at the translation's slow peak "
+                                  f"{f:.3g} Hz: at least {MIN_BREATHS:g} are needed")
+    if explained < RESPIRATION_MIN_EXPLAINED:
+        return Respiration(None, cycles=cycles, explained=explained,
+                           reason=f"no breathing rhythm: {harmonics} harmonics of the translation's slow peak "
+                                  f"{f:.3g} Hz explain {100 * explained:.0f} % of its variance (at least "
+                                  f"{100 * RESPIRATION_MIN_EXPLAINED:.0f} % expected)")
+    return Respiration(f, _frequency_std(tt, s, f, harmonics), cycles, explained)
+
+
 def _rotation(angle):
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, s], [-s, c]])
@@ -258,11 +388,12 @@ def _rotation(angle):
 @dataclass(frozen=True)
 class InputBlock:
     """The estimated input and rigid motion as states of the linear block, appended after the kinematic (and
-    reference) states: ``e = [z_p (2H) | tau (3) | z_r (3 x 2H)]``.
+    reference) states: ``e = [z_p (2H) | tau (3) | z_r (3 x 2H) | z_b (3 x 2R)]``.
 
     ``z_p``: the input's harmonics (oscillator h: ``[c_h, s_h]``, value ``c_h``), driving model input ``column``;
-    ``tau``: a random-walk translation; ``z_r``: the harmonics of the rigid motion per axis. The points move
-    rigidly by ``G e = tau + sum_h c_h^axis``.
+    ``tau``: a random-walk translation; ``z_r``: the heartbeat's harmonics of the rigid motion per axis; ``z_b``: the
+    respiration's (``R = 0`` when no breathing rhythm was seen). The points move rigidly by
+    ``G e = tau + sum_h c_h^axis + sum_r b_r^axis``.
 
     Attributes
     ----------
@@ -276,6 +407,8 @@ class InputBlock:
     noise_std : ndarray (m,)    random walk per frame
     input_scale : float         input units (Pa) per unit of ``z_p`` (the states stay of order 1, as the
                                 kinematic ones in metres, for the estimators' runaway checks and conditioning)
+    respiration_hz : float      respiration rate (0 with ``respiration_harmonics`` 0)
+    respiration_harmonics : int R
     """
 
     frequency_hz: float
@@ -287,6 +420,8 @@ class InputBlock:
     std0: np.ndarray
     noise_std: np.ndarray
     input_scale: float = 1.0
+    respiration_hz: float = 0.0
+    respiration_harmonics: int = 0
 
     def __post_init__(self):
         m = self.size
@@ -298,31 +433,40 @@ class InputBlock:
         if not (self.frequency_hz > 0 and self.dt > 0 and self.input_scale > 0 and self.harmonics >= 1
                 and 0 <= self.column < self.n_u):
             raise ValueError("input block: positive frequency, dt and harmonics and a valid input column expected")
+        if self.respiration_harmonics < 0 or (self.respiration_harmonics > 0) != (self.respiration_hz > 0):
+            raise ValueError("input block: a positive respiration_hz with respiration_harmonics >= 1, or neither")
 
     @property
     def size(self) -> int:
-        return 2 * self.harmonics + 3 + 6 * self.harmonics
+        return 8 * self.harmonics + 3 + 6 * self.respiration_harmonics
 
     @property
     def slices(self):
+        """``(z_p, tau, z_r, z_b)`` slices of the block."""
         H = self.harmonics
-        return slice(0, 2 * H), slice(2 * H, 2 * H + 3), slice(2 * H + 3, 8 * H + 3)
+        return slice(0, 2 * H), slice(2 * H, 2 * H + 3), slice(2 * H + 3, 8 * H + 3), slice(8 * H + 3, self.size)
 
-    def with_frequency(self, frequency_hz: float) -> InputBlock:
-        """The same block at another heart rate (the GE's samples of a sampled rate)."""
-        return replace(self, frequency_hz=float(frequency_hz))
+    def with_frequency(self, frequency_hz: float, respiration_hz: float | None = None) -> InputBlock:
+        """The same block at another heart rate (and respiration rate): the GE's samples of the sampled rates."""
+        if respiration_hz is None or self.respiration_harmonics == 0:
+            return replace(self, frequency_hz=float(frequency_hz))
+        return replace(self, frequency_hz=float(frequency_hz), respiration_hz=float(respiration_hz))
+
+    def _oscillators(self):
+        """``(start, frequency, harmonic)`` of every 2-D oscillator."""
+        H, R = self.harmonics, self.respiration_harmonics
+        out = [(2 * (h - 1), self.frequency_hz, h) for h in range(1, H + 1)]
+        for a in range(3):
+            out += [(2 * H + 3 + 2 * H * a + 2 * (h - 1), self.frequency_hz, h) for h in range(1, H + 1)]
+            out += [(8 * H + 3 + 2 * R * a + 2 * (r - 1), self.respiration_hz, r) for r in range(1, R + 1)]
+        return out
 
     def transition(self) -> np.ndarray:
-        """T (m, m): a rotation by ``2 pi h f dt`` per oscillator, identity for the translation."""
-        H = self.harmonics
+        """T (m, m): a rotation by ``2 pi h f dt`` per oscillator (f the heart or the respiration rate), identity
+        for the translation."""
         T = np.eye(self.size)
-        for h in range(1, H + 1):
-            R = _rotation(2 * np.pi * h * self.frequency_hz * self.dt)
-            i = 2 * (h - 1)
-            T[i:i + 2, i:i + 2] = R
-            for a in range(3):
-                j = 2 * H + 3 + 2 * H * a + i
-                T[j:j + 2, j:j + 2] = R
+        for i, f, h in self._oscillators():
+            T[i:i + 2, i:i + 2] = _rotation(2 * np.pi * h * f * self.dt)
         return T
 
     def input_maps(self):
@@ -334,11 +478,12 @@ class InputBlock:
 
     def translation_map(self) -> np.ndarray:
         """G (3, m): the rigid translation of every point."""
-        H = self.harmonics
+        H, R = self.harmonics, self.respiration_harmonics
         G = np.zeros((3, self.size))
         G[:, 2 * H:2 * H + 3] = np.eye(3)
         for a in range(3):
             G[a, 2 * H + 3 + 2 * H * a:2 * H + 3 + 2 * H * (a + 1):2] = 1.0
+            G[a, 8 * H + 3 + 2 * R * a:8 * H + 3 + 2 * R * (a + 1):2] = 1.0
         return G
 
     def coupling(self, B0, B1) -> np.ndarray:
@@ -349,32 +494,29 @@ class InputBlock:
     def noise(self) -> np.ndarray:
         return np.diag(self.noise_std ** 2)
 
-    def mean_inputs(self, K: int) -> np.ndarray:
-        """The model's inputs (K, n_u) of the block's prior mean propagated without noise (the fitted input)."""
-        P0, _ = self.input_maps()
+    def _propagated(self, M, K: int) -> np.ndarray:
         T = self.transition()
         e = self.mean0.copy()
-        out = np.empty((K, self.n_u))
+        out = np.empty((K, M.shape[0]))
         for k in range(K):
-            out[k] = P0 @ e
+            out[k] = M @ e
             e = T @ e
         return out
 
+    def mean_inputs(self, K: int) -> np.ndarray:
+        """The model's inputs (K, n_u) of the block's prior mean propagated without noise (the fitted input)."""
+        return self._propagated(self.input_maps()[0], K)
+
     def mean_translation(self, K: int) -> np.ndarray:
         """The rigid translation (K, 3) of the block's prior mean propagated without noise."""
-        G, T = self.translation_map(), self.transition()
-        e = self.mean0.copy()
-        out = np.empty((K, 3))
-        for k in range(K):
-            out[k] = G @ e
-            e = T @ e
-        return out
+        return self._propagated(self.translation_map(), K)
 
     def to_dict(self) -> dict:
         return {"kind": "harmonic", "frequency_hz": float(self.frequency_hz), "harmonics": int(self.harmonics),
                 "dt": float(self.dt), "n_u": int(self.n_u), "column": int(self.column),
-                "input_scale": float(self.input_scale), "mean0": self.mean0.tolist(), "std0": self.std0.tolist(),
-                "noise_std": self.noise_std.tolist()}
+                "input_scale": float(self.input_scale), "respiration_hz": float(self.respiration_hz),
+                "respiration_harmonics": int(self.respiration_harmonics), "mean0": self.mean0.tolist(),
+                "std0": self.std0.tolist(), "noise_std": self.noise_std.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict, dt: float | None = None) -> "InputBlock":
@@ -385,31 +527,41 @@ class InputBlock:
         try:
             blk = cls(float(d["frequency_hz"]), int(d["harmonics"]), float(d["dt"]), int(d["n_u"]), int(d["column"]),
                       np.asarray(d["mean0"], float), np.asarray(d["std0"], float),
-                      np.asarray(d["noise_std"], float), float(d.get("input_scale", 1.0)))
+                      np.asarray(d["noise_std"], float), float(d.get("input_scale", 1.0)),
+                      float(d.get("respiration_hz", 0.0)), int(d.get("respiration_harmonics", 0)))
         except KeyError as exc:
             raise ValueError(f"{exc.args[0]}: missing") from None
         except (TypeError, ValueError) as exc:
             raise ValueError(str(exc)) from None
         if dt is not None and abs(dt - blk.dt) > 1e-9 * blk.dt:
-            blk = cls(blk.frequency_hz, blk.harmonics, float(dt), blk.n_u, blk.column, blk.mean0, blk.std0,
-                      blk.noise_std * math.sqrt(dt / blk.dt), blk.input_scale)
+            blk = replace(blk, dt=float(dt), noise_std=blk.noise_std * math.sqrt(dt / blk.dt))
         return blk
 
 
+def _oscillator_prior(coef, drift, dt):
+    """Prior mean, standard deviation and walk per frame of oscillators fitted with amplitudes ``coef``
+    ([a_1, b_1, ...]): the amplitudes; ``drift`` of each harmonic's amplitude; ``drift |(a, b)| sqrt(dt)``."""
+    amp = np.repeat(np.hypot(coef[0::2], coef[1::2]), 2)
+    return coef, drift * amp + 1e-9, drift * amp * math.sqrt(dt) + 1e-12
+
+
 def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_std, translation, times,
-                         drift: float = DRIFT_PER_SQRT_S) -> InputBlock:
+                         drift: float = DRIFT_PER_SQRT_S, respiration_hz: float | None = None,
+                         respiration_harmonics: int = RESPIRATION_HARMONICS) -> InputBlock:
     """The estimators' block from a fit: input amplitudes ``alpha`` (2H,) [a_1, b_1, ...] with their standard
-    deviations, the fit's per-frame translation (K_fit, 3) at ``times`` (the sequence's first frames).
+    deviations, the fit's per-frame translation (K_fit, 3) at ``times`` (the sequence's first frames), and the
+    respiration rate when one was seen (:func:`estimate_respiration`; None: no respiration oscillators).
 
     The prior of each oscillator is its fitted amplitude at the first frame (``[a_h, b_h]``), with standard deviation
     the fit's plus ``drift`` of the amplitude; its random walk per frame ``drift |(a_h, b_h)| sqrt(dt)``. The rigid
-    motion: harmonics fitted to the translation (:func:`fit_harmonics`) likewise; the random-walk translation starts
-    where the translation minus its harmonics starts, with standard deviation the residual's, and moves by the
-    residual's increments (their standard deviation per frame)."""
+    motion: the heartbeat's harmonics (and the respiration's) fitted jointly to the translation, likewise; the
+    random-walk translation starts where the translation minus its harmonics starts, with standard deviation the
+    residual's, and moves by the residual's increments (their standard deviation per frame)."""
     H = int(harmonics)
+    R = int(respiration_harmonics) if respiration_hz else 0
     alpha = np.asarray(alpha, float).reshape(2 * H)
     alpha_std = np.asarray(alpha_std, float).reshape(2 * H)
-    m = 8 * H + 3
+    m = 8 * H + 3 + 6 * R
     mean0, std0, q = np.zeros(m), np.zeros(m), np.zeros(m)
     scale = float(np.sqrt(np.sum(alpha ** 2)))
     scale = scale if scale > 0 and np.isfinite(scale) else 1.0
@@ -418,18 +570,25 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     std0[:2 * H] = np.hypot(alpha_std / scale, drift * amp_p) + 1e-9
     q[:2 * H] = drift * amp_p * math.sqrt(dt) + 1e-12
     tr = np.asarray(translation, float)
-    c, coef, resid = fit_harmonics(times, tr, frequency_hz, H)
+    t = np.asarray(times, float)
+    X = [np.ones((t.size, 1)), harmonic_basis(t - t[0], frequency_hz, H)]
+    if R:
+        X.append(harmonic_basis(t - t[0], respiration_hz, R))
+    X = np.hstack(X)
+    coef, *_ = np.linalg.lstsq(X, tr, rcond=None)
+    resid = tr - X @ coef
     rw_sd = np.std(np.diff(resid, axis=0), axis=0) if resid.shape[0] > 2 else np.full(3, 1e-4)
-    mean0[2 * H:2 * H + 3] = c + resid[0]
+    mean0[2 * H:2 * H + 3] = coef[0] + resid[0]
     std0[2 * H:2 * H + 3] = np.std(resid, axis=0) + 1e-9
     q[2 * H:2 * H + 3] = rw_sd + 1e-9
     for a in range(3):
         s = slice(2 * H + 3 + 2 * H * a, 2 * H + 3 + 2 * H * (a + 1))
-        amp = np.repeat(np.hypot(coef[0::2, a], coef[1::2, a]), 2)
-        mean0[s] = coef[:, a]
-        std0[s] = drift * amp + 1e-9
-        q[s] = drift * amp * math.sqrt(dt) + 1e-12
-    return InputBlock(float(frequency_hz), H, float(dt), int(n_u), int(column), mean0, std0, q, scale)
+        mean0[s], std0[s], q[s] = _oscillator_prior(coef[1:1 + 2 * H, a], drift, dt)
+        if R:
+            s = slice(8 * H + 3 + 2 * R * a, 8 * H + 3 + 2 * R * (a + 1))
+            mean0[s], std0[s], q[s] = _oscillator_prior(coef[1 + 2 * H:, a], drift, dt)
+    return InputBlock(float(frequency_hz), H, float(dt), int(n_u), int(column), mean0, std0, q, scale,
+                      float(respiration_hz) if R else 0.0, R)
 
 
 # -- the block in the estimators' matrices ---------------------------------------------------------------------------
