@@ -65,6 +65,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, a
     compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
                                truth["theta"] if truth else None, LEVEL)
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
+    metrics["tracks"] = _track_motion(meas_file)
     metrics.update(_provenance(runs, truth_file, meas_file))
     with atomic_folder(output, producer=PRODUCER) as tmp:
         doc = _write_folder(tmp, metrics, runs, compared["per_run"], truth, noise, dpi, phases, images)
@@ -219,6 +220,46 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
         if isinstance(v, (int, float)) and np.isfinite(v) and v > 0:
             return float(v), f"estimate meta ({r['path']})"
     return None, None
+
+
+def _track_motion(meas_file) -> dict | None:
+    """What the tracks' own motion says, without any model (docs/formats.md §14 ``tracks``): the residual of a
+    quadratic displacement field per frame over one frame (an upper bound of the noise) and over half a second, and
+    the data-driven autoregressive field predictor against ``hold`` (:func:`tracker.metrics.field_ar_prediction`);
+    None without --measurements or with too few frames."""
+    import math
+
+    import numpy as np
+
+    from heartcv.tracker.io import read_measurements
+    from heartcv.tracker.metrics import field_ar_prediction, smooth_field_residual
+
+    if not meas_file:
+        return None
+    m = read_measurements(meas_file)
+    dt = float(np.median(np.diff(m.times))) if m.n_frames > 1 else float("nan")
+    if m.n_frames < 2 or not dt > 0:
+        return None
+    lag = max(1, int(round(0.5 / dt)))
+
+    def mean(v):
+        return float(np.nanmean(v)) if np.isfinite(v).any() else None
+
+    r1 = mean(smooth_field_residual(m.positions, lag=1))
+    out = {"field_residual_lag1_mean_m": r1,
+           "noise_norm_bound_m": None if r1 is None else r1 / math.sqrt(2),
+           "field_residual_half_second_mean_m": mean(smooth_field_residual(m.positions, lag=lag))
+           if m.n_frames > lag else None, "half_second_lag_frames": lag, "field_ar": None}
+    start = 60
+    if m.n_frames > start + 10:
+        fp = field_ar_prediction(m.positions, start=start)
+        if np.isfinite(fp.predicted).any():
+            hold = float(np.nanmean(fp.hold))
+            out["field_ar"] = {"order": fp.order, "ridge": fp.ridge, "start_frame": start,
+                               "hold_error_mean_m": hold, "error_mean_m": float(np.nanmean(fp.predicted)),
+                               "ratio_to_hold": fp.ratio(),
+                               "oracle_ratio_to_hold": float(np.nanmean(fp.oracle)) / hold if hold > 0 else None}
+    return out
 
 
 def _load_truth(path, runs: dict, allow_mixed: bool, meas_file=None) -> dict:

@@ -61,6 +61,7 @@ def _facts(doc) -> list:
     facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']}); "
                  f"its mean 3-D norm σ·√(8/π): {mm(doc['measurement_noise_norm_mean_m'])}."
                  if noise is not None else "Measurement noise: unknown (give --measurements).")
+    facts += _track_facts(doc.get("tracks"), doc["measurement_noise_norm_mean_m"])
     for key, what in (("ratio_ge_to_kf_prediction_error", "prediction error"),
                       ("ratio_ge_to_kf_truth_error", "truth error (filtered)")):
         if doc[key] is not None:
@@ -77,6 +78,30 @@ def _facts(doc) -> list:
                  "error: of the one-step predictions. Both over the points seen in each frame, the observations "
                  "of the measurements' own error against the truth.")
     return facts
+
+
+def _track_facts(tr, noise_norm) -> list:
+    """The tracks' own motion (report ``tracks``): the noise bound (said to be below the covariances' noise only when
+    under 0.8 of it) and the data-driven reference."""
+    if not tr or tr.get("field_residual_lag1_mean_m") is None:
+        return []
+    bound = tr["noise_norm_bound_m"]
+    r1 = mm(tr["field_residual_lag1_mean_m"])
+    out = [f"The tracks' own motion: a quadratic displacement field per frame leaves {r1} of the motion over one "
+           f"frame, so the noise's mean 3-D norm is at most {mm(bound)} (that over √2)"
+           + (f", below the {mm(noise_norm)} of the measurement covariances: they overstate the noise"
+              if noise_norm is not None and bound < 0.8 * noise_norm else "")
+           + (f"; over {tr['half_second_lag_frames']} frames (0.5 s) it leaves "
+              f"{mm(tr['field_residual_half_second_mean_m'])}" if tr.get("field_residual_half_second_mean_m")
+              is not None else "") + "."]
+    ar = tr.get("field_ar")
+    if ar:
+        out.append(f"Data-driven reference (no physics, tracker.metrics.field_ar_prediction): an order-{ar['order']} "
+                   f"autoregressive predictor of that field, refitted on the past every frame, predicts "
+                   f"{ar['ratio_to_hold']:.2f}× hold's error on the same points from frame {ar['start_frame']} "
+                   f"({mm(ar['error_mean_m'])} against {mm(ar['hold_error_mean_m'])}); knowing each frame's field: "
+                   f"{ar['oracle_ratio_to_hold']:.2f}×.")
+    return out
 
 
 def _heart_rates(doc) -> list:

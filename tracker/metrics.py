@@ -26,6 +26,8 @@ Applications to Tracking and Navigation*, 2001, §5.4).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .measurements import EstimateSet
@@ -53,6 +55,8 @@ __all__ = [
     "truth_in_patch_frame",
     "pose_magnitude",
     "smooth_field_residual",
+    "FieldPrediction",
+    "field_ar_prediction",
 ]
 
 
@@ -517,54 +521,152 @@ def pose_magnitude(T) -> tuple[float, float]:
     return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(T[:3, 3]))
 
 
-def smooth_field_residual(positions, degree: int = 2, min_points: int = 30) -> np.ndarray:
-    """How far tracks move apart from any smooth motion: per frame, the mean norm of what a polynomial displacement
-    field cannot explain.
+def smooth_field_residual(positions, degree: int = 2, min_points: int = 30, lag: int = 1) -> np.ndarray:
+    """How much of the tracks' motion no smooth displacement field explains: per frame, the mean norm of what a
+    polynomial field leaves of the points' displacements over the last ``lag`` frames.
 
-    Each point's displacement since the first frame it is seen in, ``d_kp = y_kp - y_first(p)``, is fitted per frame
-    by least squares with a polynomial of total degree ``degree`` in the two principal in-plane coordinates of the
-    first positions (degree 2: 6 coefficients per axis; no dynamics, a fresh field every frame). The residual
-    contains the measurement noise of both frames (for noise N(0, σ² I₃) its mean norm is √2 σ √(8/π)) plus what no
-    smooth field explains: per-point drift, sliding tracks, motion finer than the field.
+    At frame k, the displacement ``d_p = y_k,p - y_(k-lag),p`` of every point seen in both frames is fitted by least
+    squares with a polynomial of total degree ``degree`` in the two principal in-plane coordinates (of all
+    positions) of its position at ``k - lag`` (degree 2: 6 coefficients per axis; a fresh field every frame). The
+    residual holds the measurement noise of both frames (for noise N(0, σ² I₃) its mean norm is √2 σ √(8/π), less
+    the field's share of the degrees of freedom) plus the motion no smooth field explains: motion finer than the
+    field, per-point drift or sliding over the lag, jumps. With ``lag = 1`` it bounds the per-frame noise from above.
+
+    Displacements over a common interval: a field of the displacement since each point's own first frame would
+    also count, for points born at different frames, the motion between their births as misfit.
 
     Parameters
     ----------
     positions : (K, P, 3) with NaN where unseen (any frame, m)
     degree : int, 0..3
-    min_points : int    frames with fewer points seen get NaN
+    min_points : int    frames with fewer points seen in both frames get NaN
+    lag : int >= 1      frames between the two positions
 
     Returns
     -------
-    (K,) mean residual norm per frame (m); NaN at frames with too few points or no displacement yet.
+    (K,) mean residual norm per frame (m); NaN for the first ``lag`` frames and frames with too few points.
     """
     y = np.asarray(positions, float)
     if y.ndim != 3 or y.shape[2] != 3:
         raise ValueError(f"positions: (K, P, 3) expected, got {y.shape}")
     if not 0 <= int(degree) <= 3:
         raise ValueError(f"degree: 0..3 expected, got {degree}")
+    if int(lag) < 1:
+        raise ValueError(f"lag: at least 1 expected, got {lag}")
     K, P, _ = y.shape
+    L = int(lag)
     seen = np.isfinite(y).all(axis=2)
-    first = np.full((P, 3), np.nan)
-    has = seen.any(axis=0)
-    k0 = np.argmax(seen, axis=0)
-    first[has] = y[k0[has], np.flatnonzero(has)]
-    X = first[has]
+    X = y[seen]
     c = X.mean(axis=0) if X.size else np.zeros(3)
-    if X.shape[0] >= 3:
-        _, _, Vt = np.linalg.svd(X - c, full_matrices=False)
-    else:
-        Vt = np.eye(3)
-    uv = (first - c) @ Vt[:2].T
+    Vt = np.linalg.svd(X - c, full_matrices=False)[2] if X.shape[0] >= 3 else np.eye(3)
     powers = [(i, j) for i in range(int(degree) + 1) for j in range(int(degree) + 1 - i)]
     out = np.full(K, np.nan)
-    for k in range(K):
-        ok = seen[k] & has & (k0 < k)
+    for k in range(L, K):
+        ok = seen[k] & seen[k - L]
         if ok.sum() < max(int(min_points), len(powers) + 1):
             continue
-        A = np.stack([uv[ok, 0] ** i * uv[ok, 1] ** j for i, j in powers], axis=1)
+        uv = (y[k - L, ok] - c) @ Vt[:2].T
+        A = np.stack([uv[:, 0] ** i * uv[:, 1] ** j for i, j in powers], axis=1)
         scale = np.abs(A).max(axis=0)
         scale[scale == 0] = 1.0
-        D = y[k, ok] - first[ok]
+        D = y[k, ok] - y[k - L, ok]
         coef, *_ = np.linalg.lstsq(A / scale, D, rcond=None)
         out[k] = float(np.linalg.norm(D - (A / scale) @ coef, axis=1).mean())
     return out
+
+
+@dataclass(frozen=True)
+class FieldPrediction:
+    """Result of :func:`field_ar_prediction`: per frame (K,), the mean norm over the points seen in this and the
+    previous frame of the prediction error of ``hold`` (the last position), of the autoregressive field predictor,
+    and of the true field (an oracle that knows the frame's best field, :func:`smooth_field_residual` at lag 1);
+    NaN before ``start`` and where a frame cannot be scored."""
+
+    hold: np.ndarray
+    predicted: np.ndarray
+    oracle: np.ndarray
+    order: int
+    ridge: float
+
+    def ratio(self) -> float:
+        """Mean predicted error over mean hold error, over the frames scored."""
+        ok = np.isfinite(self.predicted) & np.isfinite(self.hold)
+        return float(np.mean(self.predicted[ok]) / np.mean(self.hold[ok])) if ok.any() else float("nan")
+
+
+def _field_basis(uv, powers):
+    return np.stack([uv[:, 0] ** i * uv[:, 1] ** j for i, j in powers], axis=1)
+
+
+def field_ar_prediction(positions, order: int = 6, ridge: float = 1.0, degree: int = 2, start: int = 60,
+                        min_points: int = 30) -> FieldPrediction:
+    """How predictable the tracks' smooth motion is without any physics: a causal autoregressive predictor of the
+    per-frame polynomial displacement field, as a reference for the estimators on a recording without ground truth.
+
+    Per frame k the displacement of the points seen at k-1 and k is fitted by a polynomial field of total degree
+    ``degree`` in the principal in-plane coordinates of their positions at k-1 (coordinates centred and scaled by
+    their RMS, both over the frames before ``start``, so the coefficients c_k (n, 3) compare across frames). At frame
+    k >= ``start`` the coefficients are predicted as ``c_k = sum_i W_i c_(k-i)``, i = 1 .. ``order``, with W fitted
+    by ridge regression to the frames before k only (rows with every lag known; the penalty ``ridge`` times the mean
+    diagonal of the normal matrix). A point is then predicted at ``y_(k-1) + A c_k``. The fine motion the field
+    misses is predicted as zero, as by ``hold``. It is a data-driven reference, not an estimator: W has
+    ``order x (3 n)^2`` coefficients, refitted at every frame.
+
+    Parameters
+    ----------
+    positions : (K, P, 3) with NaN where unseen (m)
+    order : int >= 1
+    ridge : float >= 0     relative ridge penalty
+    degree : int, 0..3
+    start : int            first frame predicted (the frames before it train the first prediction)
+    min_points : int       frames with fewer points seen in both frames are not fitted nor scored
+    """
+    y = np.asarray(positions, float)
+    if y.ndim != 3 or y.shape[2] != 3:
+        raise ValueError(f"positions: (K, P, 3) expected, got {y.shape}")
+    if not 0 <= int(degree) <= 3:
+        raise ValueError(f"degree: 0..3 expected, got {degree}")
+    if int(order) < 1 or not ridge >= 0 or int(start) < int(order) + 2:
+        raise ValueError(f"order >= 1, ridge >= 0 and start >= order + 2 expected, got {order}, {ridge}, {start}")
+    K = y.shape[0]
+    p = int(order)
+    seen = np.isfinite(y).all(axis=2)
+    X = y[:int(start)][seen[:int(start)]]       # the coordinate frame from the frames before the first prediction
+    c0 = X.mean(axis=0) if X.size else np.zeros(3)
+    Vt = np.linalg.svd(X - c0, full_matrices=False)[2] if X.shape[0] >= 3 else np.eye(3)
+    uv_all = (X - c0) @ Vt[:2].T
+    scale = float(np.sqrt(np.mean(uv_all ** 2))) if uv_all.size else 1.0
+    scale = scale if scale > 0 else 1.0
+    powers = [(i, j) for i in range(int(degree) + 1) for j in range(int(degree) + 1 - i)]
+    n = len(powers)
+    coef = np.full((K, n * 3), np.nan)
+    frames = {}
+    for k in range(1, K):
+        ok = seen[k] & seen[k - 1]
+        if ok.sum() < max(int(min_points), n + 1):
+            continue
+        A = _field_basis((y[k - 1, ok] - c0) @ Vt[:2].T / scale, powers)
+        D = y[k, ok] - y[k - 1, ok]
+        c, *_ = np.linalg.lstsq(A, D, rcond=None)
+        coef[k] = c.reshape(-1)
+        frames[k] = (A, D)
+    hold, pred, oracle = np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan)
+    lagged = np.full((K, p * n * 3), np.nan)
+    for k in range(p + 1, K):
+        lagged[k] = np.concatenate([coef[k - i] for i in range(1, p + 1)])
+    for k in range(int(start), K):
+        if k not in frames or not np.isfinite(lagged[k]).all():
+            continue
+        rows = np.flatnonzero(np.isfinite(lagged[:k]).all(axis=1) & np.isfinite(coef[:k]).all(axis=1))
+        if rows.size < 2:
+            continue
+        Z, T = lagged[rows], coef[rows]
+        G = Z.T @ Z
+        G[np.diag_indices_from(G)] += ridge * float(np.mean(np.diag(G)))
+        W = np.linalg.lstsq(G, Z.T @ T, rcond=None)[0]
+        A, D = frames[k]
+        c_hat = (lagged[k] @ W).reshape(n, 3)
+        hold[k] = float(np.linalg.norm(D, axis=1).mean())
+        pred[k] = float(np.linalg.norm(D - A @ c_hat, axis=1).mean())
+        oracle[k] = float(np.linalg.norm(D - A @ coef[k].reshape(n, 3), axis=1).mean())
+    return FieldPrediction(hold, pred, oracle, p, float(ridge))

@@ -72,6 +72,7 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
     assert doc["estimators"]["kf"]["heart_rate_std_hz"] == hr["std_hz"]
+    assert doc["tracks"]["field_residual_lag1_mean_m"] is None   # 14 points: fewer than a field needs (30)
     assert (tmp_path / "rep" / "image_1_frame.png").read_bytes() == png.read_bytes()
     assert "image_1_frame.png" in doc["figures"]
     summary = (tmp_path / "rep" / "summary.md").read_text()
@@ -164,3 +165,37 @@ def test_fit_sees_a_breath_and_the_ge_samples_it(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["fit", path, "--model", PAPER, "-o", none, "--respiration", "none", "--json"])
     assert res.exit_code == 0 and json.loads(res.stdout)["respiration_hz"] is None
     assert read_parameters(none).estimated_input["respiration_harmonics"] == 0
+
+
+def test_report_reads_the_tracks_own_motion(tmp_path):
+    """200 points on a plane moved by a smooth periodic motion (translation and stretch at 1.1 Hz, 30 fps) with
+    white noise of known sigma: the report's one-frame field residual over sqrt(2) is the noise's mean norm (within
+    5 %; the bound is tight when the motion is smooth), and the data-driven field reference predicts far better
+    than hold on a motion this regular; both lines in summary.md."""
+    from heartcv.tracker.measurements import MeasurementSet
+    from heartcv.tracker.metrics import mean_noise_norm
+
+    rng = np.random.default_rng(3)
+    K, P, sigma = 150, 200, 2e-5
+    t = np.arange(K) / 30.0
+    uv = rng.uniform(-0.01, 0.01, (P, 2))
+    a = np.sin(2 * np.pi * 1.1 * t)[:, None]
+    ref = np.column_stack([uv, np.zeros(P)])
+    pos = ref[None] + 1e-3 * a[..., None] * np.array([1.0, 0.4, 0.8]) \
+        + 0.05 * a[..., None] * np.column_stack([uv[:, 0], -uv[:, 1], uv[:, 0] + uv[:, 1]])[None]
+    pos = pos + sigma * rng.standard_normal(pos.shape)
+    cov = np.broadcast_to(np.eye(3) * sigma ** 2, (K, P, 3, 3)).copy()
+    path = str(tmp_path / "plane.npz")
+    write_measurements(path, MeasurementSet(t, np.arange(P), pos, cov, ref, np.zeros((K, 0)), (), (), "patch"))
+    hold = str(tmp_path / "hold.npz")
+    assert CliRunner().invoke(main, ["track", path, "--model", PAPER, "--estimator", "hold", "-o", hold]).exit_code == 0
+    rep = tmp_path / "rep"
+    res = CliRunner().invoke(main, ["report", hold, "--measurements", path, "-o", str(rep), "--json"])
+    assert res.exit_code == 0, res.output
+    tr = json.loads(res.stdout)["tracks"]
+    assert tr["noise_norm_bound_m"] == pytest.approx(mean_noise_norm(sigma), rel=0.05)
+    assert tr["half_second_lag_frames"] == 15 and tr["field_ar"]["ratio_to_hold"] < 0.3
+    assert tr["field_ar"]["oracle_ratio_to_hold"] < tr["field_ar"]["ratio_to_hold"]
+    summary = (rep / "summary.md").read_text()
+    assert "The tracks' own motion" in summary and "Data-driven reference" in summary
+    assert "overstate" not in summary                            # the covariances are right here

@@ -229,11 +229,17 @@ def test_invivo_fit_without_pressure(invivo_rig, tmp_path):
     assert 0.01 < p.registration["patch"]["length_m"] < 0.08 and p.registration["patch"]["points_dropped"] >= 0
     assert p.estimated_input["harmonics"] == 6
     assert p.registration["patch"]["method"] == "observed surface"   # the view (~17 mm) fits in the 40 mm template
-    # the README's diagnosis: the tracks move apart from any smooth motion as the sequence goes on (measured: a
-    # quadratic field per frame leaves 0.51 mm mean over the first 30 frames, 0.84 mm over the last 30, against
-    # 0.26 mm of measurement noise in two frames)
+    # the README's diagnosis (docs/model.md §17): a quadratic displacement field per frame leaves, of the motion over
+    # one frame, less than the measurement covariances' noise of two frames (measured 0.12 against 0.26 mm: they
+    # overstate the noise), and over half a beat much more (0.28 mm, spatially correlated: motion finer than the
+    # field, which the patch model's few states cannot follow either)
     from heartcv.tracker.metrics import mean_noise_norm, measurement_noise_level, smooth_field_residual
 
-    r = smooth_field_residual(m.positions)
+    r1 = np.nanmean(smooth_field_residual(m.positions, lag=1))
+    r12 = np.nanmean(smooth_field_residual(m.positions, lag=12))
     floor = np.sqrt(2) * mean_noise_norm(measurement_noise_level(m.covariances, m.seen))
-    assert np.nanmean(r[-30:]) > 1.3 * np.nanmean(r[:30]) > 1.3 * floor
+    assert r1 < 0.7 * floor and r12 > 1.8 * r1, (r1, r12, floor)
+    # the data-driven reference: a causal AR predictor of that field gets 0.74x hold (measured), not the issue's 0.6x
+    from heartcv.tracker.metrics import field_ar_prediction
+
+    assert 0.65 < field_ar_prediction(m.positions).ratio() < 0.85

@@ -253,26 +253,37 @@ def test_systole_mask_is_the_high_pressure_half():
     assert not tm.systole_mask(np.full(3, np.nan)).any()
 
 
-# -- smooth_field_residual (issue 16: how far tracks move apart from any smooth motion) ---------------------------
-def _field_scene(seed=0, K=40, P=400):
+# -- smooth_field_residual (issue 16: how much of the tracks' motion no smooth field explains) ---------------------
+def _field_scene(seed=0, K=40, P=400, deform=True):
+    """Points on a tilted plane moved by an affine map that changes every frame (a stretch, a shear, a tilt out of
+    the plane and a translation, periodic): the displacement over any interval is an affine function of the
+    earlier positions, which the polynomial fields hold exactly."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(seed)
     uv = rng.uniform(-0.01, 0.01, (P, 2))
-    X = np.column_stack([uv, np.zeros(P)]) @ Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix().T
-    t = np.arange(K)[:, None, None]
-    # a quadratic field in the first positions' plane, changing every frame
-    a = 1e-3 * np.sin(0.3 * t)
-    d = a * np.stack([1 + 40 * uv[:, 0], 3e3 * uv[:, 0] * uv[:, 1], 5e3 * uv[:, 1] ** 2], axis=1)[None]
-    return rng, X, X[None] + d
+    Rm = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    X = np.column_stack([uv, np.zeros(P)]) @ Rm.T
+    y = np.empty((K, P, 3))
+    for k in range(K):
+        a = np.sin(0.3 * k)
+        M = np.eye(3) + deform * a * np.array([[0.05, 0.02, 0.0], [0.01, -0.03, 0.0], [0.04, 0.06, 0.0]])
+        y[k] = (np.column_stack([uv, np.zeros(P)]) @ M.T) @ Rm.T + 1e-3 * np.array([a, 0.5 * a, -a])
+    return rng, X, y
 
 
-def test_smooth_field_residual_of_a_quadratic_field_is_zero_and_of_noise_its_norm():
+def test_smooth_field_residual_of_a_smooth_field_is_zero_and_of_noise_its_norm():
     from heartcv.tracker.metrics import mean_noise_norm, smooth_field_residual
 
     rng, X, y = _field_scene()
-    r = smooth_field_residual(y)
-    assert np.isnan(r[0]) and np.nanmax(r[1:]) < 1e-9 * np.abs(y - X).max() + 1e-15
+    for degree, lag in ((1, 1), (2, 1), (2, 7)):
+        r = smooth_field_residual(y, degree=degree, lag=lag)
+        assert np.isnan(r[:lag]).all() and np.nanmax(r[lag:]) < 1e-9 * np.abs(y - X).max()
+    # points born at different frames (half of them at frame 10, at another phase of the motion): still zero, the
+    # displacements are over the same interval
+    late = y.copy()
+    late[:10, 200:] = np.nan
+    assert np.nanmax(smooth_field_residual(late, degree=1)[1:]) < 1e-9 * np.abs(y - X).max()
     sigma = 2e-5
     r = smooth_field_residual(y + sigma * rng.standard_normal(y.shape))
     # noise in both frames: sqrt(2) sigma sqrt(8/pi), less the 6 of 400 degrees of freedom the field takes per axis
@@ -280,21 +291,58 @@ def test_smooth_field_residual_of_a_quadratic_field_is_zero_and_of_noise_its_nor
 
 
 def test_smooth_field_residual_sees_per_point_drift():
-    """Each point drifts at its own constant velocity (random direction, 5 um per frame): the residual grows
-    linearly, ~5 um x k x the mean norm of a unit Gaussian direction's share off the field (~1)."""
+    """Each point drifts at its own constant velocity (random direction, 5 um per frame) on a translating plane: the
+    residual over a lag of L frames is L times the mean norm of the velocities' spread about their mean (the field
+    takes the mean), the same at every frame."""
     from heartcv.tracker.metrics import smooth_field_residual
 
-    rng, X, y = _field_scene(seed=1)
+    rng, X, y = _field_scene(seed=1, deform=False)
     v = 5e-6 * rng.standard_normal((X.shape[0], 3)) / np.sqrt(3)
     k = np.arange(y.shape[0])[:, None, None]
-    r = smooth_field_residual(y + k * v[None])
     expected = np.linalg.norm(v - v.mean(axis=0), axis=1).mean()
-    np.testing.assert_allclose(r[1:] / np.arange(1, y.shape[0]), expected, rtol=0.03)
+    for lag in (1, 5):
+        r = smooth_field_residual(y + k * v[None], degree=1, lag=lag)
+        np.testing.assert_allclose(r[lag:], lag * expected, rtol=0.03)
     with pytest.raises(ValueError, match="degree"):
         smooth_field_residual(y, degree=4)
+    with pytest.raises(ValueError, match="lag"):
+        smooth_field_residual(y, lag=0)
     with pytest.raises(ValueError, match="positions"):
         smooth_field_residual(y[0])
-    # unseen points and late births are allowed; too few points give NaN
+    # unseen points are allowed; too few points give NaN
     y2 = y.copy()
     y2[:, 50:] = np.nan
     assert np.isnan(smooth_field_residual(y2, min_points=60)).all()
+
+
+def test_field_ar_prediction_is_exact_on_an_autoregressive_field_and_causal():
+    """Points on a plane moving along its normal by a quadratic field whose coefficients are sums of two sinusoids
+    (an exact AR(4) sequence): after the warm-up the AR(4) field predictor's error is ~0 and equals the oracle's,
+    hold's is the displacement; frames after k do not change the prediction at k (causal); with noise of sigma the
+    oracle leaves about sqrt(2) sigma sqrt(8/pi)."""
+    from heartcv.tracker.metrics import field_ar_prediction, mean_noise_norm
+
+    rng = np.random.default_rng(4)
+    K, P = 120, 300
+    uv = rng.uniform(-0.01, 0.01, (P, 2))
+    basis = np.stack([np.ones(P), uv[:, 0] / 0.01, uv[:, 1] / 0.01, (uv[:, 0] / 0.01) ** 2,
+                      uv[:, 0] * uv[:, 1] / 1e-4, (uv[:, 1] / 0.01) ** 2], axis=1)
+    k = np.arange(K)
+    a = (np.sin(2 * np.pi * 0.037 * k[:, None] + rng.uniform(0, 6, 6))
+         + 0.5 * np.cos(2 * np.pi * 0.11 * k[:, None] + rng.uniform(0, 6, 6))) * rng.uniform(0.5, 1, 6) * 1e-4
+    z = a @ basis.T                                              # (K, P)
+    y = np.stack([np.broadcast_to(uv[:, 0], (K, P)), np.broadcast_to(uv[:, 1], (K, P)), z], axis=2)
+    r = field_ar_prediction(y, order=4, ridge=0.0, start=40)
+    assert np.isnan(r.predicted[:40]).all() and np.isfinite(r.predicted[40:]).all()
+    assert np.nanmax(r.predicted) < 1e-5 * np.nanmean(r.hold) and np.nanmax(r.oracle) < 1e-9
+    np.testing.assert_allclose(r.hold[40:], np.abs(z[40:] - z[39:-1]).mean(axis=1))
+    assert r.ratio() < 1e-5
+    cut = y.copy()
+    cut[80:] += 1e-3 * rng.standard_normal(cut[80:].shape)      # the future changes: the past predictions do not
+    r2 = field_ar_prediction(cut, order=4, ridge=0.0, start=40)
+    np.testing.assert_array_equal(r2.predicted[:80], r.predicted[:80])
+    sigma = 1e-5
+    rn = field_ar_prediction(y + sigma * rng.standard_normal(y.shape), order=4, ridge=0.1, start=40)
+    np.testing.assert_allclose(np.nanmean(rn.oracle), np.sqrt(2) * mean_noise_norm(sigma), rtol=0.05)
+    with pytest.raises(ValueError, match="order"):
+        field_ar_prediction(y, order=4, start=5)
