@@ -120,7 +120,8 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
         Static reference states appended to the kinematic state (uncorrelated with the rest in the prior).
     input_block : tracker.unknown_input.InputBlock, optional
         The estimated input and rigid motion, appended after the reference states (uncorrelated in the prior);
-        E's random walk is then zero (its walk and the input amplitudes' are not separable).
+        E is then held at ``theta0`` when other parameters are estimated (the input's scale and E are not
+        separable, as in the fit; docs/model.md §17), else estimated as a constant (no random walk).
     dt : float, optional
         Frame interval of the sequence: the random walk ``Q_n`` is the model file's per frame of ``dt``
         (:meth:`tracker.config.ModelConfig.random_walk_std_phi`); None: per frame at the model file's rate.
@@ -144,6 +145,13 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     sd = cfg.prior_std_phi() if prior_std is None else np.asarray(prior_std, float).reshape(M)
     if not (np.isfinite(sd).all() and (sd > 0).all()):
         raise ValueError(f"prior: positive finite standard deviations expected, got {sd}")
+    Q_walk = cfg.random_walk_std_phi(dt)
+    if input_block is not None and "E" in space.estimated and space.dim > 1:
+        # the input's scale and E are not separable without a recorded pressure (quasi-statically u / E): the fit
+        # holds E, and so do the estimators (docs/model.md §17)
+        keep = [i for i, n in enumerate(space.estimated) if n != "E"]
+        sd, Q_walk, M = sd[keep], Q_walk[keep], M - 1
+        space = ParameterSpace(theta0, tuple(space.estimated[i] for i in keep), space.lower, space.upper, space.eps)
     space = ParameterSpace(theta0, space.estimated, space.lower, space.upper, space.eps)
     x_n = space.x_from_theta(theta0)
     x_l = model.static_state(theta0, u0)
@@ -160,7 +168,7 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     C[M:, :M] = J @ C_nn
     C[:M, M:] = C[M:, :M].T
     C[M:, M:] = model.initial_covariance() + J @ C_nn @ J.T
-    Q_n = np.diag(cfg.random_walk_std_phi(dt) ** 2)
+    Q_n = np.diag(Q_walk ** 2)
     Q_l = model.process_noise(theta0)
     if block is not None:
         x_l, C_l = block.prior(x_l, C[M:, M:])
@@ -172,8 +180,7 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     if input_block is not None:
         from .unknown_input import extend_noise, extend_prior
 
-        # E's walk and the input amplitudes' walk scale the same response (quasi-statically u / E): with an
-        # estimated input E is estimated as a constant (docs/model.md §17), as the fit holds it
+        # E alone estimated: a constant (its walk and the input amplitudes' would scale the same response)
         if "E" in space.estimated:
             i = space.estimated.index("E")
             Q_n = Q_n.copy()
@@ -545,7 +552,8 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
             "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
             "references": references, "reference_states": 0 if block is None else block.size,
             "input_states": 0 if input_block is None else input_block.size,
-            "random_walk_std_phi": np.sqrt(np.diag(prior.Q_n)).tolist()}
+            "random_walk_std_phi": np.sqrt(np.diag(prior.Q_n)).tolist(),
+            "held_parameters": [n for n in model.config.parameter_space().estimated if n not in space.estimated]}
     for name, p in zip(filt.sampled_rate_names, filt.rates):
         meta[f"{name}_prior"] = {"frequency_hz": p.frequency_hz, "std_log": p.phi_std,
                                  "walk_per_frame_log": p.walk_per_frame(dt)}

@@ -186,7 +186,8 @@ def test_the_ge_samples_the_heart_rate_and_finds_the_true_one(tmp_path):
     assert abs(f - 1.2) < min(0.012, 3 * s), (f, s)
     assert sampled.heart_rate[0, 0] == pytest.approx(wrong, rel=0.01)
     assert err(sampled) < err(held)
-    assert sampled.phi_mean.shape[1] == 2 and sampled.meta["estimated"] == ["E", "nu"]
+    assert sampled.phi_mean.shape[1] == 1 and sampled.meta["estimated"] == ["nu"]   # E held (no pressure)
+    assert sampled.meta["held_parameters"] == ["E"]
     with pytest.raises(ValueError, match="heart rate"):
         run_joint(m, ref, "ukf", theta0=res.theta, input_block=blk, rate=RatePrior(wrong, 0.01))
     with pytest.raises(ValueError, match="heart rate"):
@@ -195,9 +196,10 @@ def test_the_ge_samples_the_heart_rate_and_finds_the_true_one(tmp_path):
     np.testing.assert_array_equal(read_estimates(tmp_path / "ge.npz").heart_rate, sampled.heart_rate)
 
 
-def test_with_an_estimated_input_e_does_not_walk():
-    """E's random walk and the input amplitudes' scale the same response: with an input block the joint prior's
-    walk of E is zero (nu's and a sampled rate's stay), without one it is the model file's."""
+def test_with_an_estimated_input_e_is_held_or_constant():
+    """The input's scale and E are not separable without a recorded pressure: with an input block the joint prior
+    holds E at theta0 when other parameters are estimated (nu keeps its walk, a sampled rate follows), and estimates
+    it as a constant when it is the only one; without a block E walks as the model file says."""
     from heartcv.tracker.joint import joint_prior
     from heartcv.tracker.unknown_input import RatePrior
 
@@ -206,9 +208,13 @@ def test_with_an_estimated_input_e_does_not_walk():
     u0 = np.zeros(1)
     plain = joint_prior(m, u0, dt=1 / 30)
     est = joint_prior(m, u0, dt=1 / 30, input_block=blk, rate=RatePrior(1.2, 0.01))
-    iE, inu = m.config.parameter_space().estimated.index("E"), m.config.parameter_space().estimated.index("nu")
-    assert plain.Q_n[iE, iE] > 0 and est.Q_n[iE, iE] == 0.0
-    assert est.Q_n[inu, inu] == plain.Q_n[inu, inu] > 0 and est.Q_n[-1, -1] > 0 and est.Q_n.shape == (3, 3)
+    iE, inu = plain.space.estimated.index("E"), plain.space.estimated.index("nu")
+    assert plain.Q_n[iE, iE] > 0 and est.space.estimated == ("nu",)
+    assert est.Q_n.shape == (2, 2) and est.Q_n[0, 0] == plain.Q_n[inu, inu] > 0 and est.Q_n[1, 1] > 0
+    np.testing.assert_allclose(est.state.cov[0, 0], plain.state.cov[inu, inu])
+    only_e = _model(72.0, estimate=["E"], random_walk_std={"E": 0.1, "nu": 0.0})
+    e = joint_prior(only_e, u0, dt=1 / 30, input_block=blk)
+    assert e.space.estimated == ("E",) and e.Q_n[0, 0] == 0.0
 
 
 def test_heart_rate_standard_error_matches_monte_carlo():
