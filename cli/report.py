@@ -110,7 +110,8 @@ def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases
         name = f"image_{i + 1}_{Path(p).name}"
         shutil.copyfile(p, tmp / name)
         figures.append((name, f"{p} (given with --image)"))
-    figures += write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases)
+    figures += write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases,
+                             (metrics.get("tracks") or {}).get("noise_norm_bound_m"))
     metrics["figures"] = [f for f, _ in figures]
     metrics["files"] = [f for f, _ in figures] + ["metrics.json", "summary.md", "index.html"]
     doc = _jsonable(metrics)

@@ -21,6 +21,7 @@ __all__ = ["prediction_error_figure", "parameter_figure", "nis_figure", "truth_e
 MM = 1e3  # m -> mm
 _SIZE = (6.4, 4.0)
 _NOISE_STYLE = {"color": "0.35", "ls": ":", "lw": 1.3}
+_BOUND_STYLE = {"color": "0.35", "ls": "-.", "lw": 1.1}
 _MEAS_STYLE = {"color": "0.15", "ls": (0, (6, 3)), "lw": 1.2}
 
 
@@ -76,7 +77,8 @@ def _xlim(ax, series_times):
             ax.set_xlim(lo, hi)
 
 
-def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None = None):
+def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None = None,
+                            noise_bound: float | None = None):
     """Mean (top) and variance (bottom) over the seen points of the one-step prediction error norm per step.
 
     Parameters
@@ -87,6 +89,8 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
     noise_norm : float, optional
         Mean norm of the measurement noise, E|v| (m): a dotted reference line, the error of a perfect
         predictor.
+    noise_bound : float, optional
+        The tracks' own upper bound of E|v| (m; report ``tracks.noise_norm_bound_m``): a dash-dotted line.
     """
     from matplotlib.lines import Line2D
 
@@ -103,6 +107,9 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
     if noise_norm is not None and np.isfinite(noise_norm):
         top.axhline(noise_norm * MM, **_NOISE_STYLE)
         handles.append(Line2D([], [], **_NOISE_STYLE, label=f"measurement noise E|v| = {noise_norm * MM:#.3g} mm"))
+    if noise_bound is not None and np.isfinite(noise_bound):
+        top.axhline(noise_bound * MM, **_BOUND_STYLE)
+        handles.append(Line2D([], [], **_BOUND_STYLE, label=f"tracks' noise bound E|v| ≤ {noise_bound * MM:#.3g} mm"))
     handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="overall mean"))
     top.set_ylabel(r"mean $|y - \hat{y}|$ [mm]")
     bottom.set_ylabel(r"variance of $|y - \hat{y}|$ [mm²]")
@@ -318,7 +325,7 @@ CAPTIONS = {
 
 
 def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 150,
-                  level: float = 0.95, phases=None) -> list:
+                  level: float = 0.95, phases=None, noise_bound=None) -> list:
     """Write the report's PNGs into ``folder``; returns [(file name, caption)] in report order.
 
     Parameters
@@ -334,6 +341,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
     phases : (times, systole) or None
         Systole per frame (:func:`tracker.metrics.systole_mask` of the measurements' pressure), shaded on the
         parameter figures.
+    noise_bound : float or None
+        The tracks' own upper bound of the noise's mean norm (m), drawn on the prediction-error figure.
     """
     import numpy as np
 
@@ -356,15 +365,22 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
     noise_norm = mean_noise_norm(noise) if noise else None
     save(prediction_error_figure({k: (p["times"], p["error_mean"], p["error_var"],
                                          per[k]["prediction_error_mean_m"]) for k, p in ps.items()},
-                                    colors, noise_norm), "prediction_error.png", CAPTIONS["prediction_error.png"]
-         + (" Dotted: the mean norm of the measurement noise, the error of a perfect predictor." if noise else ""))
+                                    colors, noise_norm, noise_bound), "prediction_error.png",
+         CAPTIONS["prediction_error.png"]
+         + (" Dotted: the mean norm of the measurement noise, the error of a perfect predictor." if noise else "")
+         + (" Dash-dotted: the tracks' own upper bound of it (a quadratic field's residual over one frame, over √2)."
+            if noise_bound is not None else ""))
     for j in _shown_parameters(runs, ps, truth):
         name = NAMES[j]
         tr = (truth["times"], truth["theta"][:, j]) if truth is not None else None
         fig = parameter_figure(name, UNITS[j], {k: (p["times"], p["theta"][:, j], p["theta_std"][:, j])
-                                                   for k, p in ps.items()}, colors, tr, phases)
+                                                   for k, p in ps.items() if np.isfinite(p["theta"][:, j]).any()},
+                               colors, tr, phases)   # the baselines have no parameters
+        held = [series_name(k) for k, r in runs.items() if name in (r["est"].meta.get("held_parameters") or [])]
         save(fig, f"parameter_{name}.png", f"{TITLES[name][0].upper()}{TITLES[name][1:]}: posterior mean per "
              "estimator with its ±2σ band" + (" and the truth (dashed)" if tr else "")
+             + (f"; held at the fitted value by {', '.join(held)} (not separable from the estimated input's "
+                "scale without a recorded pressure, docs/model.md §17)" if held else "")
              + ("; shaded: systole (the measured pressure above the midpoint of its range), unshaded: diastole."
                 if phases is not None and np.any(phases[1]) else "."))
     for key, unit in (("heart_rate", "bpm"), ("respiration_rate", "per min")):
@@ -415,7 +431,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
 
 
 def _shown_parameters(runs, ps, truth) -> list:
-    """Indices of the parameters worth a figure: estimated by some run, or off the truth / varying in it."""
+    """Indices of the parameters worth a figure: estimated or held by some run (``meta.held_parameters``: an
+    estimated parameter the run kept at its fitted value), or off the truth / varying in it."""
     import numpy as np
 
     from heartcv.tracker.params import NAMES
@@ -423,7 +440,7 @@ def _shown_parameters(runs, ps, truth) -> list:
     shown = []
     for j, name in enumerate(NAMES):
         estimated = any(name in r["est"].meta.get("estimated", []) or (ps[k]["theta_std"][:, j] > 0).any()
-                        for k, r in runs.items())
+                        or name in (r["est"].meta.get("held_parameters") or []) for k, r in runs.items())
         off = False
         if truth is not None:
             tv = np.asarray(truth["theta"][:, j], float)

@@ -87,6 +87,15 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert g.heart_rate.shape == (g.times.size, 2) and g.meta["heart_rate_source"].startswith("sampled by the GE")
     assert g.meta["heart_rate_hz"] == g.heart_rate[-1, 0] == json.loads(res.stdout)["heart_rate_hz"]
     assert abs(g.heart_rate[-1, 0] - 1.0) < 3 * g.heart_rate[-1, 1] + 1e-3
+    # E is held at the fit's value (not separable from the input's scale); the report still draws it, and says so
+    assert g.meta["held_parameters"] == ["E"] and g.meta["estimated"] == ["nu"]
+    np.testing.assert_allclose(g.theta[:, 3], p.theta[3], rtol=1e-12)
+    assert np.all(g.theta_std[:, 3] == 0)
+    rep_ge = tmp_path / "rep_ge"
+    res = CliRunner().invoke(main, ["report", ge, hold, "-o", str(rep_ge), "--json"])
+    assert res.exit_code == 0, res.output
+    assert "parameter_E.png" in json.loads(res.stdout)["figures"]
+    assert "held at the fitted value by GE" in (rep_ge / "summary.md").read_text()
     ge2 = str(tmp_path / "ge_hold.npz")
     res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "ge",
                                     "--hold-heart-rate", "-o", ge2])
