@@ -65,7 +65,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, a
     compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
                                truth["theta"] if truth else None, LEVEL)
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
-    metrics["tracks"] = _track_motion(meas_file)
+    metrics["tracks"] = _track_motion(meas_file, runs)
     metrics.update(_provenance(runs, truth_file, meas_file))
     with atomic_folder(output, producer=PRODUCER) as tmp:
         doc = _write_folder(tmp, metrics, runs, compared["per_run"], truth, noise, dpi, phases, images)
@@ -223,17 +223,18 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
     return None, None
 
 
-def _track_motion(meas_file) -> dict | None:
+def _track_motion(meas_file, runs=None) -> dict | None:
     """What the tracks' own motion says, without any model (docs/formats.md §14 ``tracks``): the residual of a
-    quadratic displacement field per frame over one frame (an upper bound of the noise) and over half a second, and
-    the data-driven autoregressive field predictor against ``hold`` (:func:`tracker.metrics.field_ar_prediction`);
+    quadratic displacement field per frame over one frame (an upper bound of the noise) and over half a second, the
+    data-driven autoregressive field predictor against ``hold`` (:func:`tracker.metrics.field_ar_prediction`) and,
+    when the runs held tracks out, the neighbour oracle for them (:func:`tracker.metrics.heldout_neighbour_oracle`);
     None without --measurements or with too few frames."""
     import math
 
     import numpy as np
 
     from heartcv.tracker.io import read_measurements
-    from heartcv.tracker.metrics import field_ar_prediction, smooth_field_residual
+    from heartcv.tracker.metrics import field_ar_prediction, heldout_neighbour_oracle, smooth_field_residual
 
     if not meas_file:
         return None
@@ -260,6 +261,16 @@ def _track_motion(meas_file) -> dict | None:
                                "hold_error_mean_m": hold, "error_mean_m": float(np.nanmean(fp.predicted)),
                                "ratio_to_hold": fp.ratio(),
                                "oracle_ratio_to_hold": float(np.nanmean(fp.oracle)) / hold if hold > 0 else None}
+    out["heldout_oracle"] = None
+    ids = next((r["est"].meta["heldout_points"] for r in (runs or {}).values()
+                if r["est"].meta.get("heldout_points")), None)
+    if ids:
+        held = np.isin(np.asarray(m.point_ids), np.asarray(ids))
+        neighbours = 8
+        err, hold = heldout_neighbour_oracle(m.positions, held, neighbours)
+        if math.isfinite(err) and hold > 0:
+            out["heldout_oracle"] = {"neighbours": neighbours, "points": int(held.sum()), "error_mean_m": err,
+                                     "hold_error_mean_m": hold, "ratio_to_hold": err / hold}
     return out
 
 

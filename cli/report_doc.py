@@ -101,6 +101,12 @@ def _track_facts(tr, noise_norm) -> list:
                    f"{ar['ratio_to_hold']:.2f}× hold's error on the same points from frame {ar['start_frame']} "
                    f"({mm(ar['error_mean_m'])} against {mm(ar['hold_error_mean_m'])}); knowing each frame's field: "
                    f"{ar['oracle_ratio_to_hold']:.2f}×.")
+    ho = tr.get("heldout_oracle")
+    if ho:
+        out.append(f"Held-out reference (an oracle, not causal): a held-out track predicted by its position at birth "
+                   f"plus the mean displacement since of its {ho['neighbours']} nearest updated tracks in the very "
+                   f"frame predicted: {ho['ratio_to_hold']:.2f}× hold's error on the same observations "
+                   f"({mm(ho['error_mean_m'])} against {mm(ho['hold_error_mean_m'])}, {ho['points']} tracks).")
     return out
 
 

@@ -57,6 +57,7 @@ __all__ = [
     "smooth_field_residual",
     "FieldPrediction",
     "field_ar_prediction",
+    "heldout_neighbour_oracle",
 ]
 
 
@@ -670,3 +671,56 @@ def field_ar_prediction(positions, order: int = 6, ridge: float = 1.0, degree: i
         pred[k] = float(np.linalg.norm(D - A @ c_hat, axis=1).mean())
         oracle[k] = float(np.linalg.norm(D - A @ coef[k].reshape(n, 3), axis=1).mean())
     return FieldPrediction(hold, pred, oracle, p, float(ridge))
+
+
+def heldout_neighbour_oracle(positions, heldout, neighbours: int = 8, min_points: int = 30):
+    """What other points' motion says about a held-out point, at best: an oracle (not causal) for the held-out
+    prediction error of a recording without ground truth.
+
+    A held-out point p seen at frame k, first seen at frame b < k, is predicted at ``y_b,p`` plus the mean
+    displacement from b to k of its ``neighbours`` nearest points (at frame b) among the points not held out that are
+    seen at both b and k, in the very frame k predicted. Any model that infers an unseen point from the motion of
+    the others (a smooth or a local field) has the same information at most. Returned beside ``hold``'s error (the
+    point's own previous position) on the same observations: those seen at k and k-1.
+
+    Parameters
+    ----------
+    positions : (K, P, 3) with NaN where unseen (m)
+    heldout : (P,) bool or indices of the held-out points
+    neighbours : int >= 1
+    min_points : int         frames with fewer candidate neighbours are skipped
+
+    Returns
+    -------
+    (oracle, hold) : mean error norms (m) over the same observations; NaN when there are none
+    """
+    from scipy.spatial import cKDTree
+
+    y = np.asarray(positions, float)
+    if y.ndim != 3 or y.shape[2] != 3:
+        raise ValueError(f"positions: (K, P, 3) expected, got {y.shape}")
+    K, P, _ = y.shape
+    h = np.asarray(heldout)
+    if h.dtype == bool and h.shape != (P,):
+        raise ValueError(f"heldout: a mask of shape ({P},) or point indices expected, got shape {h.shape}")
+    ho = h if h.dtype == bool else np.isin(np.arange(P), h.astype(int))
+    if int(neighbours) < 1:
+        raise ValueError(f"neighbours: at least 1 expected, got {neighbours}")
+    seen = np.isfinite(y).all(axis=2)
+    birth = np.where(seen.any(axis=0), np.argmax(seen, axis=0), K)
+    err_o, err_h = [], []
+    for k in range(1, K):
+        h = np.flatnonzero(ho & seen[k] & seen[k - 1] & (birth < k))
+        for b in np.unique(birth[h]):
+            hp = h[birth[h] == b]
+            cand = np.flatnonzero(~ho & seen[k] & seen[b])
+            if cand.size < max(int(min_points), int(neighbours)):
+                continue
+            _, idx = cKDTree(y[b, cand]).query(y[b, hp], k=int(neighbours))
+            idx = idx.reshape(hp.size, -1)
+            moved = (y[k, cand] - y[b, cand])[idx].mean(axis=1)
+            err_o.append(np.linalg.norm(y[b, hp] + moved - y[k, hp], axis=1))
+            err_h.append(np.linalg.norm(y[k, hp] - y[k - 1, hp], axis=1))
+    if not err_o:
+        return float("nan"), float("nan")
+    return float(np.concatenate(err_o).mean()), float(np.concatenate(err_h).mean())

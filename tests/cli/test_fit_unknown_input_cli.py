@@ -197,7 +197,9 @@ def test_report_reads_the_tracks_own_motion(tmp_path):
     path = str(tmp_path / "plane.npz")
     write_measurements(path, MeasurementSet(t, np.arange(P), pos, cov, ref, np.zeros((K, 0)), (), (), "patch"))
     hold = str(tmp_path / "hold.npz")
-    assert CliRunner().invoke(main, ["track", path, "--model", PAPER, "--estimator", "hold", "-o", hold]).exit_code == 0
+    res = CliRunner().invoke(main, ["track", path, "--model", PAPER, "--estimator", "hold", "--holdout", "0.1",
+                                    "--seed", "0", "-o", hold])
+    assert res.exit_code == 0, res.output
     rep = tmp_path / "rep"
     res = CliRunner().invoke(main, ["report", hold, "--measurements", path, "-o", str(rep), "--json"])
     assert res.exit_code == 0, res.output
@@ -205,6 +207,8 @@ def test_report_reads_the_tracks_own_motion(tmp_path):
     assert tr["noise_norm_bound_m"] == pytest.approx(mean_noise_norm(sigma), rel=0.05)
     assert tr["half_second_lag_frames"] == 15 and tr["field_ar"]["ratio_to_hold"] < 0.3
     assert tr["field_ar"]["oracle_ratio_to_hold"] < tr["field_ar"]["ratio_to_hold"]
+    # the held-out tracks' neighbour oracle: a smooth motion is inferred from the neighbours far below hold's error
+    assert tr["heldout_oracle"]["points"] >= 3 and tr["heldout_oracle"]["ratio_to_hold"] < 0.5, tr["heldout_oracle"]
     summary = (rep / "summary.md").read_text()
-    assert "The tracks' own motion" in summary and "Data-driven reference" in summary
+    assert "The tracks' own motion" in summary and "Data-driven reference" in summary and "Held-out reference" in summary
     assert "overstate" not in summary                            # the covariances are right here
