@@ -134,3 +134,18 @@ def test_second_scene_with_the_same_options(work):
     m = json.loads((work.parent / "phantom95_scene" / "report" / "metrics.json").read_text())
     _issue15_checks(m, nis=False)
 
+
+
+def test_phantom_without_its_pressure(work):
+    """Issue 16 on the rendered phantom (`make phantom-blind`): the recorded pressure ignored (`fit --input
+    estimate` over the 4 beats), the GE with the estimated input (heart rate sampled, E held) predicts within 1.5x
+    of the GE with the pressure (measured 1.02x); the heart rate within 1 % of the truth (1 Hz)."""
+    env = dict(os.environ, PYTHONPATH=str(SAMPLES.parent))
+    subprocess.run(["make", "-C", str(SAMPLES), "phantom-blind", f"WORK={work.parent}", f"PY={sys.executable}"],
+                   check=True, env=env, stdout=subprocess.DEVNULL)
+    e = json.loads((work.parent / "phantom_blind" / "report.json").read_text())["estimators"]
+    blind, known = e["ge:est_ge"], e["ge:est_ge-2"]
+    assert blind["prediction_error_mean_m"] <= 1.5 * known["prediction_error_mean_m"], (blind, known)
+    fit = json.loads((work.parent / "phantom_blind" / "fit.json").read_text())
+    assert abs(fit["heart_rate_hz"] - 1.0) < 0.01
+    assert blind["heart_rate_source"].startswith("sampled by the GE") and abs(blind["heart_rate_hz"] - 1.0) < 0.01
