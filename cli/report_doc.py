@@ -81,16 +81,17 @@ def _facts(doc) -> list:
 
 
 def _track_facts(tr, noise_norm) -> list:
-    """The tracks' own motion (report ``tracks``): the noise bound (said to be below the covariances' noise only when
-    under 0.8 of it) and the data-driven reference."""
+    """The tracks' own motion (report ``tracks``): the bound of the frame-to-frame noise (compared with the
+    covariances' noise when under 0.8 of it) and the data-driven references."""
     if not tr or tr.get("field_residual_lag1_mean_m") is None:
         return []
     bound = tr["noise_norm_bound_m"]
     r1 = mm(tr["field_residual_lag1_mean_m"])
     out = [f"The tracks' own motion: a quadratic displacement field per frame leaves {r1} of the motion over one "
-           f"frame, so the noise's mean 3-D norm is at most {mm(bound)} (that over √2)"
-           + (f", below the {mm(noise_norm)} of the measurement covariances: they overstate the noise"
-              if noise_norm is not None and bound < 0.8 * noise_norm else "")
+           f"frame, so the noise that changes from frame to frame has a mean 3-D norm of at most {mm(bound)} (that "
+           f"over √2; a track's persistent error cancels in its motion)"
+           + (f", below the {mm(noise_norm)} of the measurement covariances (what they hold beyond it persists "
+              "from frame to frame, or is not there)" if noise_norm is not None and bound < 0.8 * noise_norm else "")
            + (f"; over {tr['half_second_lag_frames']} frames (0.5 s) it leaves "
               f"{mm(tr['field_residual_half_second_mean_m'])}" if tr.get("field_residual_half_second_mean_m")
               is not None else "") + "."]

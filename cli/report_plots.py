@@ -90,7 +90,8 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
         Mean norm of the measurement noise, E|v| (m): a dotted reference line, the error of a perfect
         predictor.
     noise_bound : float, optional
-        The tracks' own upper bound of E|v| (m; report ``tracks.noise_norm_bound_m``): a dash-dotted line.
+        The tracks' own upper bound of the frame-to-frame part of E|v| (m; report ``tracks.noise_norm_bound_m``): a
+        dash-dotted line.
     """
     from matplotlib.lines import Line2D
 
@@ -109,7 +110,8 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
         handles.append(Line2D([], [], **_NOISE_STYLE, label=f"measurement noise E|v| = {noise_norm * MM:#.3g} mm"))
     if noise_bound is not None and np.isfinite(noise_bound):
         top.axhline(noise_bound * MM, **_BOUND_STYLE)
-        handles.append(Line2D([], [], **_BOUND_STYLE, label=f"tracks' noise bound E|v| ≤ {noise_bound * MM:#.3g} mm"))
+        handles.append(Line2D([], [], **_BOUND_STYLE,
+                              label=f"frame-to-frame noise E|v| ≤ {noise_bound * MM:#.3g} mm (tracks' bound)"))
     handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="overall mean"))
     top.set_ylabel(r"mean $|y - \hat{y}|$ [mm]")
     bottom.set_ylabel(r"variance of $|y - \hat{y}|$ [mm²]")
@@ -342,7 +344,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
         Systole per frame (:func:`tracker.metrics.systole_mask` of the measurements' pressure), shaded on the
         parameter figures.
     noise_bound : float or None
-        The tracks' own upper bound of the noise's mean norm (m), drawn on the prediction-error figure.
+        The tracks' own upper bound of the frame-to-frame noise's mean norm (m), drawn on the prediction-error
+        figure.
     """
     import numpy as np
 
@@ -368,7 +371,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
                                     colors, noise_norm, noise_bound), "prediction_error.png",
          CAPTIONS["prediction_error.png"]
          + (" Dotted: the mean norm of the measurement noise, the error of a perfect predictor." if noise else "")
-         + (" Dash-dotted: the tracks' own upper bound of it (a quadratic field's residual over one frame, over √2)."
+         + (" Dash-dotted: the tracks' own upper bound of its frame-to-frame part (a quadratic field's residual over "
+            "one frame, over √2; a track's persistent error is not in it)."
             if noise_bound is not None else ""))
     for j in _shown_parameters(runs, ps, truth):
         name = NAMES[j]
