@@ -146,13 +146,13 @@ def joint_prior(model: PatchModel, u0, theta0=None, prior_std=None, block=None, 
     if not (np.isfinite(sd).all() and (sd > 0).all()):
         raise ValueError(f"prior: positive finite standard deviations expected, got {sd}")
     Q_walk = cfg.random_walk_std_phi(dt)
-    if input_block is not None and "E" in space.estimated and space.dim > 1:
+    estimated = space.estimated
+    if input_block is not None and "E" in estimated and M > 1:
         # the input's scale and E are not separable without a recorded pressure (quasi-statically u / E): the fit
         # holds E, and so do the estimators (docs/model.md §17)
-        keep = [i for i, n in enumerate(space.estimated) if n != "E"]
-        sd, Q_walk, M = sd[keep], Q_walk[keep], M - 1
-        space = ParameterSpace(theta0, tuple(space.estimated[i] for i in keep), space.lower, space.upper, space.eps)
-    space = ParameterSpace(theta0, space.estimated, space.lower, space.upper, space.eps)
+        keep = [i for i, n in enumerate(estimated) if n != "E"]
+        sd, Q_walk, M, estimated = sd[keep], Q_walk[keep], M - 1, tuple(estimated[i] for i in keep)
+    space = ParameterSpace(theta0, estimated, space.lower, space.upper, space.eps)
     x_n = space.x_from_theta(theta0)
     x_l = model.static_state(theta0, u0)
     # The initial kinematic state is the equilibrium of the *true* parameters: linearise x_static(phi) around
