@@ -8,8 +8,10 @@ Loading, the checks that the files belong together and the folder output live he
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
+import os
 from pathlib import Path
 
 import click
@@ -182,14 +184,26 @@ def _mismatch(times_a, times_b, label_a, label_b, allow_mixed, what) -> bool:
     return why is not None
 
 
+def _measurements(path):
+    """The measurement file, read once per report (noise, phases, truth and the tracks' motion all use it)."""
+    st = os.stat(path)
+    return _read_measurements_once(str(path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=1)
+def _read_measurements_once(path, mtime_ns, size):
+    from heartcv.tracker.io import read_measurements
+
+    return read_measurements(path)
+
+
 def _phases(meas_file):
     """(times, systole) from the pressure of --measurements (None without the file or a pressure input)."""
     if not meas_file:
         return None
-    from heartcv.tracker.io import read_measurements
     from heartcv.tracker.metrics import systole_mask
 
-    m = read_measurements(meas_file)
+    m = _measurements(meas_file)
     if "pressure" not in m.input_names:
         return None
     return m.times, systole_mask(m.input_columns(("pressure",))[:, 0])
@@ -199,11 +213,11 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
     """(σ in m, source) from --measurements, else from an estimate file's meta ``measurement_noise_m``."""
     import numpy as np
 
-    from heartcv.tracker.io import file_hash, read_measurements
+    from heartcv.tracker.io import file_hash
     from heartcv.tracker.metrics import measurement_noise_level
 
     if meas_file:
-        m = read_measurements(meas_file)
+        m = _measurements(meas_file)
         digest = file_hash(meas_file)
         for r in runs.values():
             recorded = (r["est"].meta.get("inputs_hash") or {}).get("measurements")
@@ -233,12 +247,11 @@ def _track_motion(meas_file, runs=None) -> dict | None:
 
     import numpy as np
 
-    from heartcv.tracker.io import read_measurements
     from heartcv.tracker.metrics import field_ar_prediction, heldout_neighbour_oracle, smooth_field_residual
 
     if not meas_file:
         return None
-    m = read_measurements(meas_file)
+    m = _measurements(meas_file)
     dt = float(np.median(np.diff(m.times))) if m.n_frames > 1 else float("nan")
     if m.n_frames < 2 or not dt > 0:
         return None
@@ -351,9 +364,8 @@ def _render_truth_positions(truth, arrays, tmeta, runs, meas_file):
         note("render truth: --measurements (the rig-frame file of heartcv measure) is needed for the truth error")
         return
     from heartcv.evaluate import truth_errors
-    from heartcv.tracker.io import read_measurements
 
-    meas = read_measurements(meas_file)
+    meas = _measurements(meas_file)
     uv = meas.meta.get("reference_uv")
     birth = meas.meta.get("reference_frame_index")
     if meas.frame != "rig" or uv is None or birth is None:
