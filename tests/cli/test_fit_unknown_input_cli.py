@@ -136,9 +136,10 @@ def test_fit_input_options_are_checked(tmp_path, blind_file):
 
 @pytest.mark.slow
 def test_fit_sees_a_breath_and_the_ge_samples_it(tmp_path, blind_file):
-    """End to end (slow, `make test-slow`; the core is tested in tests/tracker/test_unknown_input.py). The blind recording (60 bpm, 6 s) moved rigidly by a 1.5 mm breath at 0.4 Hz (2.4 breaths): fit over all
-    frames finds it within 3 % and stores it; the KF holds it, the GE samples it (trace and final posterior in the
-    file); report prints its line and draws it; --respiration none leaves it out."""
+    """End to end (slow, `make test-slow`; the core is tested in tests/tracker/test_unknown_input.py). The blind
+    recording (60 bpm, 6 s) moved rigidly by a 1.5 mm breath at 0.4 Hz (2.4 breaths): fit over all frames finds it
+    within 3 % and stores it; the KF holds it, the GE samples it (trace and final posterior in the file); report
+    prints its line and draws it; --respiration none leaves it out."""
     m = read_measurements(blind_file)
     t = m.times - m.times[0]
     breath = 1.5e-3 * np.array([0.2, 1.0, 0.4]) * np.sin(2 * np.pi * 0.4 * t)[:, None]
