@@ -138,6 +138,10 @@ def holdout_points(candidates, fraction: float, rng: np.random.Generator) -> np.
     return np.sort(rng.choice(c, size=n, replace=False)) if n else np.zeros(0, int)
 
 
+NEIGHBOURS = 8
+"""Updated points whose offsets a point never updated takes the mean of (:meth:`TrackOffsets.fill`)."""
+
+
 class TrackOffsets:
     """Per-track offsets ``b_p`` (3 per kept point), random walks beside the estimator's state (docs/estimators.md
     §3.9): what a point does that the model cannot (a track sliding on the tissue, motion finer than the mesh).
@@ -156,6 +160,7 @@ class TrackOffsets:
         self.mean = np.zeros(3 * n_points)
         self.cov = np.zeros((n_points, 3, 3))
         self.n_updates = 0
+        self.updated = np.zeros(n_points, bool)
 
     def predict(self) -> None:
         self.cov += self.q2 * np.eye(3)
@@ -187,7 +192,34 @@ class TrackOffsets:
         b[pts] += np.einsum("pij,pj->pi", Pb, s_e)
         Pb_new = Pb - Pb @ s_pp @ Pb
         self.cov[pts] = 0.5 * (Pb_new + np.swapaxes(Pb_new, 1, 2))
+        self.updated[pts] = True
         self.n_updates += 1
+
+    def recentre(self) -> np.ndarray:
+        """Remove the offsets' common translation: ``c`` (3,), the mean offset of the points updated so far, is
+        subtracted from their offsets and returned, for the caller to add to the state's rigid translation
+        (docs/estimators.md §3.9 "Common motion"). Points never updated (held out, not yet seen) keep theirs."""
+        if not self.updated.any():
+            return np.zeros(3)
+        b = self.mean.reshape(-1, 3)
+        c = b[self.updated].mean(axis=0)
+        b[self.updated] -= c
+        return c
+
+    def fill(self, positions, neighbours: int = NEIGHBOURS) -> None:
+        """Give the points never updated (held out, not yet seen) the mean offset of their ``neighbours`` nearest
+        updated points (by ``positions`` (P, 3), the points' references): the offsets' field where a point was
+        never measured, from the other tracks only (docs/estimators.md §3.9 "Points never updated")."""
+        from scipy.spatial import cKDTree
+
+        if self.updated.all() or not self.updated.any():
+            return
+        src = np.flatnonzero(self.updated)
+        dst = np.flatnonzero(~self.updated)
+        n = min(int(neighbours), src.size)
+        _, idx = cKDTree(np.asarray(positions)[src]).query(np.asarray(positions)[dst], k=n)
+        b = self.mean.reshape(-1, 3)
+        b[dst] = b[src[np.asarray(idx).reshape(dst.size, n)]].mean(axis=1)
 
     def summary(self) -> dict:
         b = np.linalg.norm(self.mean.reshape(-1, 3), axis=1)
@@ -197,7 +229,8 @@ class TrackOffsets:
 
 def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u, trans, Q_n, *,
                joseph: bool = False, adapt=None, progress: Callable[[int, int], None] | None = None,
-               meta: dict | None = None, heldout=None, drift: float | None = None) -> EstimateSet:
+               meta: dict | None = None, heldout=None, drift: float | None = None,
+               translation: int | None = None) -> EstimateSet:
     """The frame loop shared by every estimator.
 
     Per frame k: ``k > 0``: predict (``est.predict``), constrain; record the one-step prediction
@@ -225,6 +258,11 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         Per-track offsets (docs/estimators.md §3.9): each kept point's measurement is ``y_p = ... + b_p + v_p`` with
         ``b_p`` a random walk of this standard deviation per coordinate and frame (m), estimated beside the state by
         the decoupled update of :class:`TrackOffsets`. None or 0: no offsets.
+    translation : int, optional
+        Where the linear block's rigid translation (3 states, a random walk moving every point alike) starts in
+        ``x_l``. With offsets, after every update their common translation moves into it
+        (:meth:`TrackOffsets.recentre`): the seen points' predictions are unchanged, the model's rigid motion
+        carries what all the tracks share, and the points it never updated (held out, born later) get it.
 
     Raises
     ------
@@ -311,6 +349,12 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             state = res.state
             if offsets is not None:
                 offsets.update(res)
+                if translation is not None:
+                    c = offsets.recentre()
+                    mean = np.array(state.mean)
+                    mean[M + translation:M + translation + 3] += c
+                    state = GaussianState(mean, state.cov)
+                offsets.fill(reference)
             counters["jitter"] += res.jitter_events
             _check_runaway(state, M, "update")
             state, ev, low = est.constrain(state)

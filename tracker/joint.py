@@ -564,4 +564,5 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
         adapt = NoiseAdaptation(filt.M, dt, prior.Q_n, adaptation)
     return run_filter(filt, meas, prior.state, H, obs.reference, pts.keep, u, trans, prior.Q_n,
                       joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout,
-                      drift=drift)
+                      drift=drift, translation=None if input_block is None else
+                      H.shape[1] - input_block.size + input_block.slices[1].start)
