@@ -41,6 +41,11 @@ MAX_STARTS = 1000
               help="An estimated input's rigid motion: 'auto' adds harmonics of a respiration rate when the fit's "
                    "translation shows one (at least 2 breaths in the fitted frames, explaining half its variance); "
                    "'none' leaves respiration to the random-walk translation.")
+@click.option("--rigid-ar", type=click.Choice(("auto", "none", "1", "2", "3", "4")), default="auto",
+              show_default=True,
+              help="An estimated input's rigid translation beyond the heartbeat's and respiration's harmonics: its "
+                   "increments a vector autoregression of this order fitted over the fitted frames; 'auto' the "
+                   "order 0-4 with the least BIC (0: a random walk); 'none' a random walk (docs/model.md 17).")
 @click.option("--patch", "patch_mode", type=click.Choice(("auto", "model", "observed")), default="auto",
               show_default=True,
               help="Rig-frame files: 'model' places the model file's patch by its surface and motion; 'observed' "
@@ -50,7 +55,7 @@ MAX_STARTS = 1000
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
 def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, respiration,
-        patch_mode, as_json):
+        rigid_ar, patch_mode, as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -76,6 +81,8 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
     estimate_input = _input_mode(input_mode, meas, m, measurements)
     if harmonics is not None and not estimate_input:
         raise BadInput("--harmonics applies to an estimated input (--input estimate) only")
+    if rigid_ar != "auto" and not estimate_input:
+        raise BadInput("--rigid-ar applies to an estimated input (--input estimate) only")
     if patch_mode == "observed" and meas.frame != "rig":
         raise BadInput(f"--patch observed: {measurements} is already in the patch frame (registered)")
     registration = estimated_input = None
@@ -85,7 +92,9 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
                 m, meas, registration = _place_patch(meas, m, output, patch_mode, estimate_input)
             if estimate_input:
                 result, estimated_input = _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations,
-                                                              harmonics, respiration == "auto")
+                                                              harmonics, respiration == "auto",
+                                                              None if rigid_ar == "auto" else
+                                                              0 if rigid_ar == "none" else int(rigid_ar))
             else:
                 result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
                                  max_evaluations=max_evaluations)
@@ -185,7 +194,8 @@ def _observed_patch(rig_meas, m, output):
     return model, to_patch_frame(rig_meas, op.registration), reg
 
 
-def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True):
+def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True,
+                       rigid_ar_order=None):
     """The fit with an estimated input (heart rate from the tracks, harmonics and rigid motion profiled; the
     respiration rate from the rigid motion when ``respiration`` and one is seen): ``(FitResult, estimated_input
     entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
@@ -238,14 +248,18 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     else:
         log.info("no respiration rate: %s (the random-walk translation takes it up)", resp.reason)
     block = input_block_from_fit(hr.frequency_hz, H, prob.dt, len(m.input_names), column, alpha, alpha_std,
-                                 rigid[:, :3], meas.times[:K], respiration_hz=resp.frequency_hz)
+                                 rigid[:, :3], meas.times[:K], respiration_hz=resp.frequency_hz,
+                                 rigid_ar_order=rigid_ar_order)
+    log.info("rigid translation: %s", f"an order-{block.ar_order} autoregression of its increments"
+             + (" (BIC)" if rigid_ar_order is None else "") if block.ar_order else "a random walk"
+             + (" (BIC)" if rigid_ar_order is None else ""))
     entry = block.to_dict()
     entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "std_hz": hr.std_hz, "bpm": 60 * hr.frequency_hz,
                              "peak_hz": hr.peak_hz,
                              "peak_ratio": hr.peak_ratio, "beats": hr.beats, "points": hr.points},
                  respiration=resp.to_dict(),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
-                 held_fixed=["E"] if fit_model is not m else [], fit_frames=K,
+                 held_fixed=["E"] if fit_model is not m else [], fit_frames=K, rigid_ar_order=block.ar_order,
                  translation_std_m=[float(v) for v in np.std(rigid[:, :3], axis=0)])
     return result, entry
 

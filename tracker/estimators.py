@@ -230,7 +230,7 @@ class TrackOffsets:
 def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u, trans, Q_n, *,
                joseph: bool = False, adapt=None, progress: Callable[[int, int], None] | None = None,
                meta: dict | None = None, heldout=None, drift: float | None = None,
-               translation: int | None = None) -> EstimateSet:
+               translation=None) -> EstimateSet:
     """The frame loop shared by every estimator.
 
     Per frame k: ``k > 0``: predict (``est.predict``), constrain; record the one-step prediction
@@ -258,11 +258,12 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         Per-track offsets (docs/estimators.md §3.9): each kept point's measurement is ``y_p = ... + b_p + v_p`` with
         ``b_p`` a random walk of this standard deviation per coordinate and frame (m), estimated beside the state by
         the decoupled update of :class:`TrackOffsets`. None or 0: no offsets.
-    translation : int, optional
-        Where the linear block's rigid translation (3 states, a random walk moving every point alike) starts in
-        ``x_l``. With offsets, after every update their common translation moves into it
-        (:meth:`TrackOffsets.recentre`): the seen points' predictions are unchanged, the model's rigid motion
-        carries what all the tracks share, and the points it never updated (held out, born later) get it.
+    translation : sequence of int, optional
+        Where the linear block's rigid translation (3 states moving every point alike) and its previous values
+        (:attr:`tracker.unknown_input.InputBlock.translation_states`) start in ``x_l``. With offsets, after every
+        update their common translation moves into these (:meth:`TrackOffsets.recentre`): the seen points'
+        predictions are unchanged, the model's rigid motion carries what all the tracks share, and the points it
+        never updated (held out, born later) get it.
 
     Raises
     ------
@@ -349,10 +350,11 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             state = res.state
             if offsets is not None:
                 offsets.update(res)
-                if translation is not None:
+                if translation:
                     c = offsets.recentre()
                     mean = np.array(state.mean)
-                    mean[M + translation:M + translation + 3] += c
+                    for i in translation:
+                        mean[M + i:M + i + 3] += c
                     state = GaussianState(mean, state.cov)
                 offsets.fill(reference)
             counters["jitter"] += res.jitter_events

@@ -565,4 +565,4 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     return run_filter(filt, meas, prior.state, H, obs.reference, pts.keep, u, trans, prior.Q_n,
                       joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout,
                       drift=drift, translation=None if input_block is None else
-                      H.shape[1] - input_block.size + input_block.slices[1].start)
+                      [H.shape[1] - input_block.size + i for i in input_block.translation_states])

@@ -200,7 +200,7 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
     return run_filter(kf, meas, GaussianState(mean0, cov0), H, obs.reference, pts.keep, u, trans,
                       np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt, heldout=heldout, drift=drift,
                       translation=None if input_block is None else
-                      H.shape[1] - input_block.size + input_block.slices[1].start)
+                      [H.shape[1] - input_block.size + i for i in input_block.translation_states])
 
 
 

@@ -36,7 +36,8 @@ __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", 
            "fit_harmonics", "input_block_from_fit", "extend_observation",
            "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs", "RatePrior",
            "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN", "Respiration", "estimate_respiration", "respiration_prior",
-           "RESPIRATION_BAND_HZ", "RESPIRATION_HARMONICS", "MIN_BREATHS", "RESPIRATION_MIN_EXPLAINED"]
+           "RESPIRATION_BAND_HZ", "RESPIRATION_HARMONICS", "MIN_BREATHS", "RESPIRATION_MIN_EXPLAINED",
+           "fit_increment_ar", "select_increment_ar", "MAX_AR_ORDER"]
 
 HARMONICS = 6
 """Harmonics of the heart rate in the estimated input and in the rigid motion. An LV pressure pulse needs them: on
@@ -389,12 +390,14 @@ def _rotation(angle):
 @dataclass(frozen=True)
 class InputBlock:
     """The estimated input and rigid motion as states of the linear block, appended after the kinematic (and
-    reference) states: ``e = [z_p (2H) | tau (3) | z_r (3 x 2H) | z_b (3 x 2R)]``.
+    reference) states: ``e = [z_p (2H) | tau (3) | z_r (3 x 2H_r) | z_b (3 x 2R) | l (3 p)]``.
 
     ``z_p``: the input's harmonics (oscillator h: ``[c_h, s_h]``, value ``c_h``), driving model input ``column``;
-    ``tau``: a random-walk translation; ``z_r``: the heartbeat's harmonics of the rigid motion per axis; ``z_b``: the
-    respiration's (``R = 0`` when no breathing rhythm was seen). The points move rigidly by
-    ``G e = tau + sum_h c_h^axis + sum_r b_r^axis``.
+    ``tau``: the translation not periodic, a random walk, or with ``rigid_ar`` (p > 0) a vector autoregression of
+    its increments ``d_k = tau_k - tau_(k-1)``: ``d_(k+1) = sum_i A_i d_(k+1-i) + w`` with ``l = [tau_(k-1), ...,
+    tau_(k-p)]`` the previous translations; ``z_r``: the heartbeat's ``H_r`` harmonics of the rigid motion per axis
+    (``rigid_harmonics``, default H); ``z_b``: the respiration's (``R = 0`` when no breathing rhythm was seen). The
+    points move rigidly by ``G e = tau + sum_h c_h^axis + sum_r b_r^axis``.
 
     Attributes
     ----------
@@ -410,6 +413,9 @@ class InputBlock:
                                 kinematic ones in metres, for the estimators' runaway checks and conditioning)
     respiration_hz : float      respiration rate (0 with ``respiration_harmonics`` 0)
     respiration_harmonics : int R
+    rigid_harmonics : int       H_r, the heartbeat's harmonics in the rigid motion (None: H)
+    rigid_ar : ndarray (p, 3, 3) the autoregression of the translation's increments, ``d_(k+1) = sum_i A_i d_(k+1-i)``
+                                (None or p = 0: a random walk)
     """
 
     frequency_hz: float
@@ -423,8 +429,19 @@ class InputBlock:
     input_scale: float = 1.0
     respiration_hz: float = 0.0
     respiration_harmonics: int = 0
+    rigid_harmonics: int | None = None
+    rigid_ar: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.rigid_harmonics is None:
+            object.__setattr__(self, "rigid_harmonics", int(self.harmonics))
+        ar = np.zeros((0, 3, 3)) if self.rigid_ar is None else np.asarray(self.rigid_ar, float)
+        if ar.ndim != 3 or ar.shape[1:] != (3, 3) or not np.isfinite(ar).all():
+            raise ValueError(f"input block: rigid_ar must be finite (p, 3, 3), got shape {ar.shape}")
+        if not 0 <= int(self.rigid_harmonics) <= int(self.harmonics):
+            raise ValueError(f"input block: rigid_harmonics in 0..{self.harmonics} expected, got "
+                             f"{self.rigid_harmonics}")
+        object.__setattr__(self, "rigid_ar", ar)
         m = self.size
         for name in ("mean0", "std0", "noise_std"):
             v = np.asarray(getattr(self, name), float).reshape(-1)
@@ -438,14 +455,31 @@ class InputBlock:
             raise ValueError("input block: a positive respiration_hz with respiration_harmonics >= 1, or neither")
 
     @property
+    def ar_order(self) -> int:
+        return 0 if self.rigid_ar is None else int(np.shape(self.rigid_ar)[0])
+
+    @property
     def size(self) -> int:
-        return 8 * self.harmonics + 3 + 6 * self.respiration_harmonics
+        return 2 * self.harmonics + 3 + 6 * self.rigid_harmonics + 6 * self.respiration_harmonics + 3 * self.ar_order
 
     @property
     def slices(self):
-        """``(z_p, tau, z_r, z_b)`` slices of the block."""
-        H = self.harmonics
-        return slice(0, 2 * H), slice(2 * H, 2 * H + 3), slice(2 * H + 3, 8 * H + 3), slice(8 * H + 3, self.size)
+        """``(z_p, tau, z_r, z_b)`` slices of the block (the lags :attr:`lags` after them)."""
+        H, Hr, R = self.harmonics, self.rigid_harmonics, self.respiration_harmonics
+        zb = 2 * H + 3 + 6 * Hr
+        return slice(0, 2 * H), slice(2 * H, 2 * H + 3), slice(2 * H + 3, zb), slice(zb, zb + 6 * R)
+
+    @property
+    def translation_states(self) -> tuple:
+        """Where ``tau`` and each previous translation ``l_j`` start: a constant shift of the translation moves all
+        of them alike (its increments unchanged)."""
+        return (self.slices[1].start,) + tuple(self.lags.start + 3 * j for j in range(self.ar_order))
+
+    @property
+    def lags(self) -> slice:
+        """The previous translations ``l`` (3 p)."""
+        start = self.slices[3].stop
+        return slice(start, start + 3 * self.ar_order)
 
     def with_frequency(self, frequency_hz: float, respiration_hz: float | None = None) -> InputBlock:
         """The same block at another heart rate (and respiration rate): the GE's samples of the sampled rates."""
@@ -455,19 +489,33 @@ class InputBlock:
 
     def _oscillators(self):
         """``(start, frequency, harmonic)`` of every 2-D oscillator."""
-        H, R = self.harmonics, self.respiration_harmonics
+        H, Hr, R = self.harmonics, self.rigid_harmonics, self.respiration_harmonics
+        zb = self.slices[3].start
         out = [(2 * (h - 1), self.frequency_hz, h) for h in range(1, H + 1)]
         for a in range(3):
-            out += [(2 * H + 3 + 2 * H * a + 2 * (h - 1), self.frequency_hz, h) for h in range(1, H + 1)]
-            out += [(8 * H + 3 + 2 * R * a + 2 * (r - 1), self.respiration_hz, r) for r in range(1, R + 1)]
+            out += [(2 * H + 3 + 2 * Hr * a + 2 * (h - 1), self.frequency_hz, h) for h in range(1, Hr + 1)]
+            out += [(zb + 2 * R * a + 2 * (r - 1), self.respiration_hz, r) for r in range(1, R + 1)]
         return out
 
     def transition(self) -> np.ndarray:
-        """T (m, m): a rotation by ``2 pi h f dt`` per oscillator (f the heart or the respiration rate), identity
-        for the translation."""
+        """T (m, m): a rotation by ``2 pi h f dt`` per oscillator (f the heart or the respiration rate); for the
+        translation the identity, or with ``rigid_ar`` ``tau' = tau + sum_i A_i (l_(i-1) - l_i)`` (``l_0 = tau``),
+        ``l_1' = tau``, ``l_j' = l_(j-1)``."""
         T = np.eye(self.size)
         for i, f, h in self._oscillators():
             T[i:i + 2, i:i + 2] = _rotation(2 * np.pi * h * f * self.dt)
+        p = self.ar_order
+        if p:
+            tau = self.slices[1].start
+            col = [tau] + [self.lags.start + 3 * j for j in range(p)]     # tau, l_1 .. l_p
+            for i in range(1, p + 1):
+                A = self.rigid_ar[i - 1]
+                T[tau:tau + 3, col[i - 1]:col[i - 1] + 3] += A
+                T[tau:tau + 3, col[i]:col[i] + 3] -= A
+            for j in range(p):
+                r = self.lags.start + 3 * j
+                T[r:r + 3, :] = 0.0
+                T[r:r + 3, col[j]:col[j] + 3] = np.eye(3)
         return T
 
     def input_maps(self):
@@ -479,12 +527,13 @@ class InputBlock:
 
     def translation_map(self) -> np.ndarray:
         """G (3, m): the rigid translation of every point."""
-        H, R = self.harmonics, self.respiration_harmonics
+        H, Hr, R = self.harmonics, self.rigid_harmonics, self.respiration_harmonics
+        zb = self.slices[3].start
         G = np.zeros((3, self.size))
         G[:, 2 * H:2 * H + 3] = np.eye(3)
         for a in range(3):
-            G[a, 2 * H + 3 + 2 * H * a:2 * H + 3 + 2 * H * (a + 1):2] = 1.0
-            G[a, 8 * H + 3 + 2 * R * a:8 * H + 3 + 2 * R * (a + 1):2] = 1.0
+            G[a, 2 * H + 3 + 2 * Hr * a:2 * H + 3 + 2 * Hr * (a + 1):2] = 1.0
+            G[a, zb + 2 * R * a:zb + 2 * R * (a + 1):2] = 1.0
         return G
 
     def coupling(self, B0, B1) -> np.ndarray:
@@ -516,7 +565,9 @@ class InputBlock:
         return {"kind": "harmonic", "frequency_hz": float(self.frequency_hz), "harmonics": int(self.harmonics),
                 "dt": float(self.dt), "n_u": int(self.n_u), "column": int(self.column),
                 "input_scale": float(self.input_scale), "respiration_hz": float(self.respiration_hz),
-                "respiration_harmonics": int(self.respiration_harmonics), "mean0": self.mean0.tolist(),
+                "respiration_harmonics": int(self.respiration_harmonics),
+                "rigid_harmonics": int(self.rigid_harmonics), "rigid_ar": self.rigid_ar.tolist(),
+                "mean0": self.mean0.tolist(),
                 "std0": self.std0.tolist(), "noise_std": self.noise_std.tolist()}
 
     @classmethod
@@ -529,12 +580,17 @@ class InputBlock:
             blk = cls(float(d["frequency_hz"]), int(d["harmonics"]), float(d["dt"]), int(d["n_u"]), int(d["column"]),
                       np.asarray(d["mean0"], float), np.asarray(d["std0"], float),
                       np.asarray(d["noise_std"], float), float(d.get("input_scale", 1.0)),
-                      float(d.get("respiration_hz", 0.0)), int(d.get("respiration_harmonics", 0)))
+                      float(d.get("respiration_hz", 0.0)), int(d.get("respiration_harmonics", 0)),
+                      None if d.get("rigid_harmonics") is None else int(d["rigid_harmonics"]),
+                      None if d.get("rigid_ar") is None else np.asarray(d["rigid_ar"], float).reshape(-1, 3, 3))
         except KeyError as exc:
             raise ValueError(f"{exc.args[0]}: missing") from None
         except (TypeError, ValueError) as exc:
             raise ValueError(str(exc)) from None
         if dt is not None and abs(dt - blk.dt) > 1e-9 * blk.dt:
+            if blk.ar_order:
+                raise ValueError(f"rigid_ar: fitted at a frame interval of {blk.dt:g} s, the measurements have "
+                                 f"{dt:g} s (an autoregression does not carry over; refit)")
             blk = replace(blk, dt=float(dt), noise_std=blk.noise_std * math.sqrt(dt / blk.dt))
         return blk
 
@@ -548,7 +604,8 @@ def _oscillator_prior(coef, drift, dt):
 
 def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_std, translation, times,
                          drift: float = DRIFT_PER_SQRT_S, respiration_hz: float | None = None,
-                         respiration_harmonics: int = RESPIRATION_HARMONICS) -> InputBlock:
+                         respiration_harmonics: int = RESPIRATION_HARMONICS, rigid_harmonics: int | None = None,
+                         rigid_ar_order: int | None = None) -> InputBlock:
     """The estimators' block from a fit: input amplitudes ``alpha`` (2H,) [a_1, b_1, ...] with their standard
     deviations, the fit's per-frame translation (K_fit, 3) at ``times`` (the sequence's first frames), and the
     respiration rate when one was seen (:func:`estimate_respiration`; None: no respiration oscillators).
@@ -557,12 +614,29 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     the fit's plus ``drift`` of the amplitude; its random walk per frame ``drift |(a_h, b_h)| sqrt(dt)``. The rigid
     motion: the heartbeat's harmonics (and the respiration's) fitted jointly to the translation, likewise; the
     random-walk translation starts where the translation minus its harmonics starts, with standard deviation the
-    residual's, and moves by the residual's increments (their standard deviation per frame)."""
+    residual's, and moves by the residual's increments (their standard deviation per frame). ``rigid_harmonics``
+    (default ``harmonics``) of the heartbeat in the rigid motion; with ``rigid_ar_order`` p > 0 the increments
+    follow the vector autoregression fitted to them by least squares (:func:`fit_increment_ar`; None, the
+    default: the order in 0 .. :data:`MAX_AR_ORDER` by :func:`select_increment_ar`, 0 the plain random walk), the
+    random walk its residual, and the previous translations start where the translation does."""
     H = int(harmonics)
+    Hr = H if rigid_harmonics is None else int(rigid_harmonics)
     R = int(respiration_harmonics) if respiration_hz else 0
     alpha = np.asarray(alpha, float).reshape(2 * H)
     alpha_std = np.asarray(alpha_std, float).reshape(2 * H)
-    m = 8 * H + 3 + 6 * R
+    tr = np.asarray(translation, float)
+    t = np.asarray(times, float)
+    X = [np.ones((t.size, 1))]
+    if Hr:
+        X.append(harmonic_basis(t - t[0], frequency_hz, Hr))
+    if R:
+        X.append(harmonic_basis(t - t[0], respiration_hz, R))
+    X = np.hstack(X)
+    coef, *_ = np.linalg.lstsq(X, tr, rcond=None)
+    resid = tr - X @ coef
+    inc = np.diff(resid, axis=0)
+    p = select_increment_ar(inc) if rigid_ar_order is None else int(rigid_ar_order)
+    m = 2 * H + 3 + 6 * Hr + 6 * R + 3 * p
     mean0, std0, q = np.zeros(m), np.zeros(m), np.zeros(m)
     scale = float(np.sqrt(np.sum(alpha ** 2)))
     scale = scale if scale > 0 and np.isfinite(scale) else 1.0
@@ -570,26 +644,73 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     mean0[:2 * H] = alpha / scale
     std0[:2 * H] = np.hypot(alpha_std / scale, drift * amp_p) + 1e-9
     q[:2 * H] = drift * amp_p * math.sqrt(dt) + 1e-12
-    tr = np.asarray(translation, float)
-    t = np.asarray(times, float)
-    X = [np.ones((t.size, 1)), harmonic_basis(t - t[0], frequency_hz, H)]
-    if R:
-        X.append(harmonic_basis(t - t[0], respiration_hz, R))
-    X = np.hstack(X)
-    coef, *_ = np.linalg.lstsq(X, tr, rcond=None)
-    resid = tr - X @ coef
-    rw_sd = np.std(np.diff(resid, axis=0), axis=0) if resid.shape[0] > 2 else np.full(3, 1e-4)
+    rw_sd = np.std(inc, axis=0) if resid.shape[0] > 2 else np.full(3, 1e-4)
+    ar = None
+    if p:
+        ar, rw_sd = fit_increment_ar(inc, p)
     mean0[2 * H:2 * H + 3] = coef[0] + resid[0]
     std0[2 * H:2 * H + 3] = np.std(resid, axis=0) + 1e-9
     q[2 * H:2 * H + 3] = rw_sd + 1e-9
+    zb = 2 * H + 3 + 6 * Hr
     for a in range(3):
-        s = slice(2 * H + 3 + 2 * H * a, 2 * H + 3 + 2 * H * (a + 1))
-        mean0[s], std0[s], q[s] = _oscillator_prior(coef[1:1 + 2 * H, a], drift, dt)
+        s = slice(2 * H + 3 + 2 * Hr * a, 2 * H + 3 + 2 * Hr * (a + 1))
+        mean0[s], std0[s], q[s] = _oscillator_prior(coef[1:1 + 2 * Hr, a], drift, dt)
         if R:
-            s = slice(8 * H + 3 + 2 * R * a, 8 * H + 3 + 2 * R * (a + 1))
-            mean0[s], std0[s], q[s] = _oscillator_prior(coef[1 + 2 * H:, a], drift, dt)
+            s = slice(zb + 2 * R * a, zb + 2 * R * (a + 1))
+            mean0[s], std0[s], q[s] = _oscillator_prior(coef[1 + 2 * Hr:, a], drift, dt)
+    lags = slice(zb + 6 * R, m)
+    mean0[lags] = np.tile(mean0[2 * H:2 * H + 3], p)
+    std0[lags] = np.tile(std0[2 * H:2 * H + 3], p)
+    q[lags] = 1e-12
     return InputBlock(float(frequency_hz), H, float(dt), int(n_u), int(column), mean0, std0, q, scale,
-                      float(respiration_hz) if R else 0.0, R)
+                      float(respiration_hz) if R else 0.0, R, Hr, ar)
+
+
+MAX_AR_ORDER = 4
+"""Largest order of the translation's increment autoregression that :func:`select_increment_ar` considers."""
+
+
+def select_increment_ar(increments, max_order: int = MAX_AR_ORDER) -> int:
+    """The order p in 0 .. ``max_order`` of :func:`fit_increment_ar` with the least Bayesian information criterion
+    ``n log det(Sigma_w) + 9 p log n`` over the same rows (n = K - ``max_order``) for every order; p = 0 is the
+    random walk (white increments, ``Sigma_w`` their second moment). Fewer frames than the largest order needs
+    lower it."""
+    d = np.asarray(increments, float)
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise ValueError(f"increments: (K, 3) expected, got {d.shape}")
+    top = min(int(max_order), max(0, (d.shape[0] - 5) // 4))
+    n = d.shape[0] - top
+    best, best_bic = 0, np.inf
+    for p in range(0, top + 1):
+        Y = d[top:]
+        if p:
+            Z = np.hstack([d[top - i:d.shape[0] - i] for i in range(1, p + 1)])
+            E = Y - Z @ np.linalg.lstsq(Z, Y, rcond=None)[0]
+        else:
+            E = Y
+        sign, logdet = np.linalg.slogdet(E.T @ E / n)
+        bic = n * logdet + 9 * p * np.log(n) if sign > 0 else np.inf
+        if bic < best_bic:
+            best, best_bic = p, bic
+    return best
+
+
+def fit_increment_ar(increments, order: int, ridge: float = 1e-6):
+    """Least-squares vector autoregression of a translation's increments (K, 3): ``d_k = sum_i A_i d_(k-i) + w_k``,
+    i = 1 .. ``order``. Returns ``(A (order, 3, 3), std of w per axis (3,))``; ``ridge`` (relative to the normal
+    matrix's mean diagonal) only guards a singular system."""
+    d = np.asarray(increments, float)
+    p = int(order)
+    if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 3 * p + 3 + 2:
+        raise ValueError(f"increments: at least {3 * p + 5} frames of (K, 3) expected for an order-{p} "
+                         f"autoregression, got {d.shape}")
+    Z = np.hstack([d[p - i:d.shape[0] - i] for i in range(1, p + 1)])      # (n, 3p): d_(k-1) .. d_(k-p)
+    Y = d[p:]
+    G = Z.T @ Z
+    G[np.diag_indices_from(G)] += ridge * float(np.mean(np.diag(G))) + 1e-300
+    W = np.linalg.solve(G, Z.T @ Y)                                           # Y ~ Z W
+    A = np.stack([W[3 * (i - 1):3 * i].T for i in range(1, p + 1)])
+    return A, np.std(Y - Z @ W, axis=0)
 
 
 # -- the block in the estimators' matrices ---------------------------------------------------------------------------

@@ -44,7 +44,9 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
                                     "-o", out, "--json"])
     assert res.exit_code == 0, res.output
     e = read_estimates(out)
-    assert e.complete and e.meta["input_states"] == 8 * 6 + 3
+    p_ar = p.estimated_input["rigid_ar_order"]
+    assert 0 <= p_ar <= 4 and len(p.estimated_input["rigid_ar"]) == p_ar
+    assert e.complete and e.meta["input_states"] == 8 * 6 + 3 + 3 * p_ar
     hold = str(tmp_path / "hold.npz")
     assert CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--estimator", "hold",
                                      "-o", hold]).exit_code == 0
@@ -132,6 +134,32 @@ def test_fit_input_options_are_checked(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "p.yaml"),
                                     "--patch", "observed"])
     assert res.exit_code == 2 and "patch frame" in res.output
+
+
+def test_rigid_ar_is_forced_refused_with_a_recorded_input_and_at_another_frame_rate(tmp_path, blind_file):
+    """--rigid-ar 2 gives an order-2 autoregression in the parameters file; with a recorded pressure the option is
+    refused (exit 2); a parameters file with an autoregression is refused (exit 2 naming estimated_input) for
+    measurements at another frame interval, every other frame of the same recording."""
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90",
+                                    "--rigid-ar", "2"])
+    assert res.exit_code == 0, res.output
+    entry = read_parameters(params).estimated_input
+    assert entry["rigid_ar_order"] == 2 and np.asarray(entry["rigid_ar"]).shape == (2, 3, 3)
+    m = read_measurements(blind_file)
+    half = str(tmp_path / "half.npz")
+    write_measurements(half, dataclasses.replace(m, times=m.times[::2], positions=m.positions[::2],
+                                                 covariances=m.covariances[::2], inputs=m.inputs[::2],
+                                                 views=m.views[::2], reprojection_rms=m.reprojection_rms[::2]))
+    res = CliRunner().invoke(main, ["track", half, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "-o", str(tmp_path / "kf.npz")])
+    assert res.exit_code == 2 and "estimated_input" in res.output and "rigid_ar" in res.output
+    assert "Traceback" not in res.output and not (tmp_path / "kf.npz").exists()
+    sim = str(tmp_path / "sim.npz")
+    assert CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "2", "--seed", "2", "-o",
+                                     sim]).exit_code == 0
+    res = CliRunner().invoke(main, ["fit", sim, "--model", PAPER, "-o", str(tmp_path / "q.yaml"), "--rigid-ar", "1"])
+    assert res.exit_code == 2 and "--rigid-ar" in res.output
 
 
 @pytest.mark.slow
