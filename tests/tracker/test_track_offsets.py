@@ -111,10 +111,8 @@ def blind_drifting():
     does (first 3 s); after the fitted frames the view starts to drift: every track moves by one common random walk
     (0.1 mm per frame and coordinate) and a random-walk rotation about the patch's centre (5 mrad per frame and
     axis), none of which the fit saw; plus each track's own small walk (0.01 mm)."""
-    from heartcv.tracker.fit import UnknownInputProblem, fit
-    from heartcv.tracker.measurements import MeasurementSet
-    from heartcv.tracker.unknown_input import HARMONICS, estimate_heart_rate, input_block_from_fit
-    from tests.tracker.test_unknown_input import _model
+    from heartcv.tracker.unknown_input import HARMONICS, input_block_from_fit
+    from tests.tracker.test_unknown_input import _fit_blind, _model
 
     m = _model(72.0)
     meas = to_measurements(simulate(m, 6.0, np.random.default_rng(7), process_noise=False, initial_noise=False))
@@ -126,13 +124,7 @@ def blind_drifting():
     angle = np.cumsum(late[:, 0] * 5e-3 * rng.standard_normal((K, 3)), axis=0)
     walk = (np.cumsum(late * 1e-4 * rng.standard_normal((K, 1, 3)) + 1e-5 * rng.standard_normal((K, P, 3)), axis=0)
             + np.cross(angle[:, None, :], X[None]))
-    blind = MeasurementSet(meas.times, meas.point_ids, meas.positions + walk, meas.covariances, meas.reference,
-                           np.zeros((K, 0)), (), (), "patch")
-    hr = estimate_heart_rate(blind.times[:Kf], blind.positions[:Kf])
-    fm = _model(72.0, estimate=["nu"])
-    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=Kf)
-    res = fit(fm, blind, problem=prob)
-    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    blind, hr, prob, res, alpha, sd, rigid = _fit_blind(meas, meas.positions + walk, Kf)
     blk = input_block_from_fit(hr.frequency_hz, HARMONICS, prob.dt, 1, 0, alpha, sd, rigid, blind.times[:Kf])
     return m, dataclasses.replace(blind, reference=prob.offsets(res.theta)), res.theta, blk
 

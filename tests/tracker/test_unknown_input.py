@@ -43,6 +43,20 @@ def _tracks(f, K=250, fps=25.0, P=20, noise=1e-5, seed=0, harmonics=(1.0, 0.4, 0
     return t, y + noise * rng.standard_normal(y.shape)
 
 
+def _fit_blind(meas, positions, frames):
+    """What ``heartcv fit`` does to a paper-patch recording at 72 bpm whose pressure is dropped (positions
+    replaced): ``(blind set, heart rate, UnknownInputProblem, FitResult, alpha, alpha_std, rigid translation)`` over
+    the first ``frames`` frames, nu fitted."""
+    blind = MeasurementSet(meas.times, meas.point_ids, positions, meas.covariances, meas.reference,
+                           np.zeros((meas.n_frames, 0)), (), (), "patch")
+    hr = estimate_heart_rate(blind.times[:frames], blind.positions[:frames])
+    fm = _model(72.0, estimate=["nu"])
+    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=frames)
+    res = fit(fm, blind, problem=prob)
+    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    return blind, hr, prob, res, alpha, sd, rigid
+
+
 # -- heart rate --------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("f", [0.87, 1.13, 2.4])
 def test_heart_rate_of_periodic_tracks_within_0p2_percent(f):
@@ -354,15 +368,9 @@ def test_a_breathing_patch_fit_sees_the_respiration_and_the_ge_samples_it():
     meas = to_measurements(sim)
     t = meas.times - meas.times[0]
     breath = 2e-3 * np.array([0.3, 1.0, 0.5]) * (np.cos(2 * np.pi * 0.3 * t) - 1)[:, None]
-    pos = meas.positions + breath[:, None, :]
-    blind = MeasurementSet(meas.times, meas.point_ids, pos, meas.covariances, meas.reference,
-                           np.zeros((meas.n_frames, 0)), (), (), "patch")
     K = 225
-    hr = estimate_heart_rate(blind.times[:K], blind.positions[:K])
-    fm = _model(72.0, estimate=["nu"])
-    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=K)
-    res = fit(fm, blind, problem=prob)
-    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    pos = meas.positions + breath[:, None, :]
+    blind, hr, prob, res, alpha, sd, rigid = _fit_blind(meas, pos, K)
     r = estimate_respiration(blind.times[:K], rigid, hr.frequency_hz)
     assert r.seen, r.reason
     assert abs(r.frequency_hz - 0.3) / 0.3 < 0.03
@@ -480,14 +488,8 @@ def test_an_autoregressive_translation_predicts_better_than_a_random_walk():
     sim = simulate(m, 10.0, np.random.default_rng(7), process_noise=False, initial_noise=False)
     meas = to_measurements(sim)
     drift = np.cumsum(_var_increments(np.array([0.9 * np.eye(3)]), meas.n_frames, 3e-5, 4), axis=0)[:, None, :]
-    blind = MeasurementSet(meas.times, meas.point_ids, meas.positions + drift, meas.covariances, meas.reference,
-                           np.zeros((meas.n_frames, 0)), (), (), "patch")
     K = 90
-    hr = estimate_heart_rate(blind.times[:K], blind.positions[:K])
-    fm = _model(72.0, estimate=["nu"])
-    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=K)
-    res = fit(fm, blind, problem=prob)
-    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    blind, hr, prob, res, alpha, sd, rigid = _fit_blind(meas, meas.positions + drift, K)
     ref = dataclasses.replace(blind, reference=prob.offsets(res.theta))
     truth = sim.positions + drift
 
