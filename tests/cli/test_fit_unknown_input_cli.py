@@ -189,7 +189,8 @@ def test_fit_sees_a_breath_and_the_ge_samples_it(tmp_path, blind_file):
         assert res.exit_code == 0, res.output
         runs[est] = (out, read_estimates(out), json.loads(res.stdout))
     kf, ge = runs["kf"][1], runs["ge"][1]
-    assert kf.meta["input_states"] == 8 * 6 + 3 + 6 * 2 and kf.respiration_rate is None
+    assert kf.meta["input_states"] == 8 * 6 + 3 + 6 * 2 + 3 * p.estimated_input["rigid_ar_order"]
+    assert kf.respiration_rate is None
     assert kf.meta["respiration_rate_hz"] == resp["frequency_hz"] == runs["kf"][2]["respiration_rate_hz"]
     assert ge.respiration_rate.shape == (ge.times.size, 2)
     assert ge.meta["respiration_rate_hz"] == ge.respiration_rate[-1, 0] == runs["ge"][2]["respiration_rate_hz"]
