@@ -296,6 +296,7 @@ def _summary(result, output) -> dict:
         "input_amplitudes_pa": None if result.estimated_input is None else result.estimated_input["amplitudes_pa"],
         "respiration_hz": None if result.estimated_input is None
         else (result.estimated_input.get("respiration") or {}).get("frequency_hz"),
+        "rigid_ar_order": None if result.estimated_input is None else result.estimated_input.get("rigid_ar_order"),
         "output": output,
     }
     return summary

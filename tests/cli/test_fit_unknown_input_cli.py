@@ -146,6 +146,9 @@ def test_rigid_ar_is_forced_refused_with_a_recorded_input_and_at_another_frame_r
     assert res.exit_code == 0, res.output
     entry = read_parameters(params).estimated_input
     assert entry["rigid_ar_order"] == 2 and np.asarray(entry["rigid_ar"]).shape == (2, 3, 3)
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "n.yaml"), "--frames",
+                                    "90", "--rigid-ar", "none", "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["rigid_ar_order"] == 0
     m = read_measurements(blind_file)
     half = str(tmp_path / "half.npz")
     write_measurements(half, dataclasses.replace(m, times=m.times[::2], positions=m.positions[::2],
