@@ -126,6 +126,14 @@ def _heart_rates(doc) -> list:
             how = "sampled; final posterior" if source and source.startswith("sampled") else "held constant"
             lines.append(f"{title}: {60 * f:.4g}{band} {unit} ({f:.4g} Hz{'' if std is None else f' ± {std:.2g}'}; "
                          f"{source or 'source not recorded'}), {how} by {', '.join(labels)}.")
+    orders = {}
+    for label, e in doc["estimators"].items():
+        if e.get("rigid_ar_order") is not None:
+            orders.setdefault(int(e["rigid_ar_order"]), []).append(label)
+    for p, labels in orders.items():
+        what = f"an order-{p} autoregression of its increments" if p else "a random walk"
+        lines.append(f"Rigid translation beyond the harmonics: {what} (heartcv fit, docs/model.md 17), in "
+                     f"{', '.join(labels)}.")
     return lines
 
 

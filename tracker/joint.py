@@ -552,6 +552,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
             "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
             "references": references, "reference_states": 0 if block is None else block.size,
             "input_states": 0 if input_block is None else input_block.size,
+            "rigid_ar_order": None if input_block is None else input_block.ar_order,
             "random_walk_std_phi": np.sqrt(np.diag(prior.Q_n)).tolist(),
             "held_parameters": [n for n in model.config.parameter_space().estimated if n not in space.estimated]}
     for name, p in zip(filt.sampled_rate_names, filt.rates):

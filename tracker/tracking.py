@@ -191,7 +191,8 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
     kf = KalmanFilter(theta, A, B0, B1, Q)
     meta = {"dropped_points": pts.dropped.tolist(), "joseph": joseph, "dt": dt, "references": references,
             "reference_states": 0 if block is None else block.size,
-            "input_states": 0 if input_block is None else input_block.size}
+            "input_states": 0 if input_block is None else input_block.size,
+            "rigid_ar_order": None if input_block is None else input_block.ar_order}
     adapt = None
     if adaptation is not None:
         from .adaptive import NoiseAdaptation

@@ -80,6 +80,10 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     summary = (tmp_path / "rep" / "summary.md").read_text()
     assert f"Heart rate: {60 * hr['frequency_hz']:.4g} ± {60 * hr['std_hz']:.2g} bpm" in summary
     assert "held constant by kf, harmonic" in summary
+    assert doc["estimators"]["kf"]["rigid_ar_order"] == p_ar
+    assert doc["estimators"]["harmonic"]["rigid_ar_order"] is None
+    rigid = f"an order-{p_ar} autoregression" if p_ar else "a random walk"
+    assert f"Rigid translation beyond the harmonics: {rigid}" in summary and summary.count("Rigid translation") == 1
     # the GE samples the heart rate by default (its trace in the file, the final posterior in the meta), or holds it
     ge = str(tmp_path / "ge.npz")
     res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "ge",
