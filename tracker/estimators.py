@@ -161,6 +161,7 @@ class TrackOffsets:
         self.cov = np.zeros((n_points, 3, 3))
         self.n_updates = 0
         self.updated = np.zeros(n_points, bool)
+        self._fill = None     # (updated mask, points filled, their neighbours) of the last fill
 
     def predict(self) -> None:
         self.cov += self.q2 * np.eye(3)
@@ -214,12 +215,15 @@ class TrackOffsets:
 
         if self.updated.all() or not self.updated.any():
             return
-        src = np.flatnonzero(self.updated)
-        dst = np.flatnonzero(~self.updated)
-        n = min(int(neighbours), src.size)
-        _, idx = cKDTree(np.asarray(positions)[src]).query(np.asarray(positions)[dst], k=n)
+        if self._fill is None or not np.array_equal(self._fill[0], self.updated):   # the neighbours change only
+            src = np.flatnonzero(self.updated)                                     # when points get updated
+            dst = np.flatnonzero(~self.updated)
+            n = min(int(neighbours), src.size)
+            _, idx = cKDTree(np.asarray(positions)[src]).query(np.asarray(positions)[dst], k=n)
+            self._fill = (self.updated.copy(), dst, src[np.asarray(idx).reshape(dst.size, n)])
+        _, dst, near = self._fill
         b = self.mean.reshape(-1, 3)
-        b[dst] = b[src[np.asarray(idx).reshape(dst.size, n)]].mean(axis=1)
+        b[dst] = b[near].mean(axis=1)
 
     def summary(self) -> dict:
         b = np.linalg.norm(self.mean.reshape(-1, 3), axis=1)

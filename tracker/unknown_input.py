@@ -670,6 +670,11 @@ MAX_AR_ORDER = 4
 """Largest order of the translation's increment autoregression that :func:`select_increment_ar` considers."""
 
 
+def _lagged(d, p: int, start: int) -> np.ndarray:
+    """Rows k = start .. K-1 of ``[d_(k-1), ..., d_(k-p)]`` (K - start, 3 p)."""
+    return np.hstack([d[start - i:d.shape[0] - i] for i in range(1, p + 1)])
+
+
 def select_increment_ar(increments, max_order: int = MAX_AR_ORDER) -> int:
     """The order p in 0 .. ``max_order`` of :func:`fit_increment_ar` with the least Bayesian information criterion
     ``n log det(Sigma_w) + 9 p log n`` over the same rows (n = K - ``max_order``) for every order; p = 0 is the
@@ -684,7 +689,7 @@ def select_increment_ar(increments, max_order: int = MAX_AR_ORDER) -> int:
     for p in range(0, top + 1):
         Y = d[top:]
         if p:
-            Z = np.hstack([d[top - i:d.shape[0] - i] for i in range(1, p + 1)])
+            Z = _lagged(d, p, top)
             E = Y - Z @ np.linalg.lstsq(Z, Y, rcond=None)[0]
         else:
             E = Y
@@ -704,7 +709,7 @@ def fit_increment_ar(increments, order: int, ridge: float = 1e-6):
     if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 3 * p + 3 + 2:
         raise ValueError(f"increments: at least {3 * p + 5} frames of (K, 3) expected for an order-{p} "
                          f"autoregression, got {d.shape}")
-    Z = np.hstack([d[p - i:d.shape[0] - i] for i in range(1, p + 1)])      # (n, 3p): d_(k-1) .. d_(k-p)
+    Z = _lagged(d, p, p)
     Y = d[p:]
     G = Z.T @ Z
     G[np.diag_indices_from(G)] += ridge * float(np.mean(np.diag(G))) + 1e-300
