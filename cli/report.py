@@ -64,8 +64,9 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, a
         if truth is not None and label in truth["positions"] and r["est"].filtered is None:
             truth["notes"].append(f"{label}: the estimate file records no filtered positions (written before "
                                   "heartcv track recorded them); truth error of the one-step predictions only")
+    fit_frames = _fit_frames(runs)
     compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
-                               truth["theta"] if truth else None, LEVEL)
+                               truth["theta"] if truth else None, LEVEL, fit_frames)
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
     metrics["tracks"] = _track_motion(meas_file, runs)
     metrics.update(_provenance(runs, truth_file, meas_file))
@@ -75,6 +76,23 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, a
         emit_json(dict(doc, output=output))
     else:
         log.info("wrote %s (%d figures); %s", output, len(doc["figures"]), _headline(doc))
+
+
+def _fit_frames(runs) -> int | None:
+    """The frames that fitted the runs' parameters (``meta.fit_frames``, heartcv track --params), one split for
+    every run: the largest where they differ (no run's in-sample frame counts as after its fit); None when no run
+    records one."""
+    found = {}
+    for label, r in runs.items():
+        n = r["est"].meta.get("fit_frames")
+        if isinstance(n, (int, float)) and not isinstance(n, bool) and n >= 1:
+            found[label] = int(n)
+    if not found:
+        return None
+    if len(set(found.values())) > 1:
+        log.warning("the runs' parameters were fitted over different frames (%s): the split within / after the "
+                    "fit uses the largest", ", ".join(f"{k}: {v}" for k, v in found.items()))
+    return max(found.values())
 
 
 def _provenance(runs, truth_file, meas_file) -> dict:
@@ -113,7 +131,7 @@ def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases
         shutil.copyfile(p, tmp / name)
         figures.append((name, f"{p} (given with --image)"))
     figures += write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases,
-                             (metrics.get("tracks") or {}).get("noise_norm_bound_m"))
+                             (metrics.get("tracks") or {}).get("noise_norm_bound_m"), metrics.get("fit_frames"))
     metrics["figures"] = [f for f, _ in figures]
     metrics["files"] = [f for f, _ in figures] + ["metrics.json", "summary.md", "index.html"]
     doc = _jsonable(metrics)
@@ -403,7 +421,9 @@ PER_ESTIMATOR_KEYS = (
     "measurement_truth_error_mean_m", "nis_mean", "nis_mean_dof", "nis_mean_band", "nis_in_band_fraction",
     "nis_steps", "theta_final", "theta_std_final", "step_time_median_s", "step_time_p95_s", "truncation_events",
     "heldout_prediction_error_mean_m", "heldout_prediction_error_rms_m", "heldout_prediction_error_count",
-    "heldout_points")
+    "heldout_points", "prediction_error_within_fit_mean_m", "prediction_error_within_fit_count",
+    "prediction_error_after_fit_mean_m", "prediction_error_after_fit_count",
+    "heldout_prediction_error_after_fit_mean_m")
 
 
 def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
@@ -432,6 +452,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
         "estimators": estimators,
         "ratio_ge_to_kf_prediction_error": compared["ratio_ge_to_kf_prediction_error"],
         "ratio_ge_to_kf_truth_error": compared["ratio_ge_to_kf_truth_error"],
+        "fit_frames": compared["fit_frames"],
     }
 
 

@@ -137,10 +137,36 @@ def _heart_rates(doc) -> list:
     return lines
 
 
+def _fit_split_rows(doc):
+    """Title, introduction, header and rows of the table within / after the fitted frames; None without a
+    split."""
+    n = doc.get("fit_frames")
+    est = doc["estimators"]
+    if n is None or all(e.get("prediction_error_after_fit_mean_m") is None for e in est.values()):
+        return None
+    hold = (est.get("hold") or {}).get("prediction_error_after_fit_mean_m")
+    head = ["estimator", f"pred. error within the fit (1 ≤ k < {n})", f"pred. error after it (k ≥ {n})",
+            "after it / hold's", "held-out pred. error after it"]
+    rows = []
+    for label, e in est.items():
+        after = e.get("prediction_error_after_fit_mean_m")
+        rows.append([label, mm(e.get("prediction_error_within_fit_mean_m")), mm(after),
+                     f"{after / hold:.3f}" if after is not None and hold else "–",
+                     mm(e.get("heldout_prediction_error_after_fit_mean_m"))])
+    intro = (f"The parameters (and an estimated input) were fitted to frames 0–{n - 1} (heartcv fit --frames): the "
+             f"predictions of frames 1–{n - 1} are in-sample, those from frame {n} on out-of-sample.")
+    return "Within and after the fitted frames", intro, head, rows
+
+
 def markdown(doc, figures) -> str:
     head, rows = _rows(doc)
     lines = ["# heartcv report", ""] + [f"- {f}" for f in _facts(doc)] + ["", "## Estimators", ""]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
+    split = _fit_split_rows(doc)
+    if split:
+        title, intro, shead, srows = split
+        lines += ["", f"## {title}", "", intro, "", "| " + " | ".join(shead) + " |", "|" + "---|" * len(shead)]
+        lines += ["| " + " | ".join(r) + " |" for r in srows]
     prow = _parameter_rows(doc)
     if prow:
         lines += ["", "## Final parameters (mean ± std)", "", "| " + " | ".join(PARAMETER_HEAD) + " |",
@@ -164,6 +190,10 @@ def html(doc, figures, folder: Path) -> str:
 
     prow = _parameter_rows(doc)
     ptable = ("<h2>Final parameters (mean ± std)</h2>" + table(PARAMETER_HEAD, prow)) if prow else ""
+    split = _fit_split_rows(doc)
+    if split:
+        title, intro, shead, srows = split
+        ptable = f"<h2>{escape(title)}</h2><p>{escape(intro)}</p>" + table(shead, srows) + ptable
     figs = []
     for name, caption in figures:
         data = base64.b64encode((folder / name).read_bytes()).decode("ascii")

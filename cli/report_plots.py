@@ -22,6 +22,7 @@ MM = 1e3  # m -> mm
 _SIZE = (6.4, 4.0)
 _NOISE_STYLE = {"color": "0.35", "ls": ":", "lw": 1.3}
 _BOUND_STYLE = {"color": "0.35", "ls": "-.", "lw": 1.1}
+_FIT_END_STYLE = {"color": "0.15", "ls": ":", "lw": 1.6}
 _MEAS_STYLE = {"color": "0.15", "ls": (0, (6, 3)), "lw": 1.2}
 
 
@@ -78,7 +79,7 @@ def _xlim(ax, series_times):
 
 
 def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None = None,
-                            noise_bound: float | None = None):
+                            noise_bound: float | None = None, fit_end: float | None = None):
     """Mean (top) and variance (bottom) over the seen points of the one-step prediction error norm per step.
 
     Parameters
@@ -92,6 +93,9 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
     noise_bound : float, optional
         The tracks' own upper bound of the frame-to-frame part of E|v| (m; report ``tracks.noise_norm_bound_m``): a
         dash-dotted line.
+    fit_end : float, optional
+        Time (s) of the first frame after the frames that fitted the parameters (report ``fit_frames``): a vertical
+        line; the predictions before it are in-sample.
     """
     from matplotlib.lines import Line2D
 
@@ -113,6 +117,10 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
         handles.append(Line2D([], [], **_BOUND_STYLE,
                               label=f"frame-to-frame noise E|v| ≤ {noise_bound * MM:#.3g} mm (tracks' bound)"))
     handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="overall mean"))
+    if fit_end is not None and np.isfinite(fit_end):
+        for ax in (top, bottom):
+            ax.axvline(fit_end, **_FIT_END_STYLE)
+        handles.append(Line2D([], [], **_FIT_END_STYLE, label="end of the fitted frames (heartcv fit)"))
     top.set_ylabel(r"mean $|y - \hat{y}|$ [mm]")
     bottom.set_ylabel(r"variance of $|y - \hat{y}|$ [mm²]")
     for ax in (top, bottom):
@@ -327,7 +335,7 @@ CAPTIONS = {
 
 
 def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 150,
-                  level: float = 0.95, phases=None, noise_bound=None) -> list:
+                  level: float = 0.95, phases=None, noise_bound=None, fit_frames=None) -> list:
     """Write the report's PNGs into ``folder``; returns [(file name, caption)] in report order.
 
     Parameters
@@ -345,6 +353,9 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
         parameter figures.
     noise_bound : float or None
         The tracks' own upper bound of the frame-to-frame noise's mean norm (m), drawn on the prediction-error
+        figure.
+    fit_frames : int or None
+        The frames that fitted the parameters (report ``fit_frames``): their end is marked on the prediction-error
         figure.
     """
     import numpy as np
@@ -366,14 +377,18 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
         out.append((name, caption))
 
     noise_norm = mean_noise_norm(noise) if noise else None
+    t0 = next(iter(ps.values()))["times"]
+    fit_end = float(t0[fit_frames]) if fit_frames is not None and 0 < fit_frames < len(t0) else None
     save(prediction_error_figure({k: (p["times"], p["error_mean"], p["error_var"],
                                          per[k]["prediction_error_mean_m"]) for k, p in ps.items()},
-                                    colors, noise_norm, noise_bound), "prediction_error.png",
+                                    colors, noise_norm, noise_bound, fit_end), "prediction_error.png",
          CAPTIONS["prediction_error.png"]
          + (" Dotted: the mean norm of the measurement noise, the error of a perfect predictor." if noise else "")
          + (" Dash-dotted: the tracks' own upper bound of its frame-to-frame part (a quadratic field's residual over "
             "one frame, over √2; a track's persistent error is not in it)."
-            if noise_bound is not None else ""))
+            if noise_bound is not None else "")
+         + (" Vertical dotted line: the first frame after those that fitted the parameters (heartcv fit --frames); "
+            "the predictions before it are in-sample." if fit_end is not None else ""))
     for j in _shown_parameters(runs, ps, truth):
         name = NAMES[j]
         tr = (truth["times"], truth["theta"][:, j]) if truth is not None else None

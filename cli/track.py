@@ -143,6 +143,9 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         meas = _with_params(m, meas, fitted, measurements, params_file, model_file, input_block)
         meta["params"] = str(params_file)
         meta["inputs_hash"]["params"] = file_hash(params_file)
+        if fitted.frames and (fitted.meta.get("inputs_hash") or {}).get("measurements") == \
+                meta["inputs_hash"]["measurements"]:
+            meta["fit_frames"] = int(fitted.frames)    # fitted to this very file: report splits in- / out-of-sample
         if isinstance(meas.meta.get("registration"), dict):     # rig-frame file: where the patch frame lies
             meta["patch_from_rig"] = meas.meta["registration"].get("patch_from_rig")
         if estimator in ("ge", "ukf", "ekf"):

@@ -271,7 +271,21 @@ def _last_by_name(rows) -> dict:
     return dict(zip(NAMES, map(float, rows[-1]), strict=True))
 
 
-def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.95) -> dict:
+def _fit_split(norms, held_norms, fit_frames, c) -> dict:
+    """The prediction error within the fitted frames (1 <= k < N) and after them (k >= N); None without a split."""
+    keys = ("prediction_error_within_fit_mean_m", "prediction_error_within_fit_count",
+            "prediction_error_after_fit_mean_m", "prediction_error_after_fit_count",
+            "heldout_prediction_error_after_fit_mean_m")
+    n = None if fit_frames is None else int(fit_frames)
+    if n is None or not 0 < n < c:
+        return dict.fromkeys(keys)
+    within, after = pooled_stats(norms[1:n]), pooled_stats(norms[n:])
+    held = pooled_stats(held_norms[n:])["mean"] if held_norms is not None else None
+    return dict(zip(keys, (within["mean"], within["count"], after["mean"], after["count"], held), strict=True))
+
+
+def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.95, fit_frames: int | None = None
+                      ) -> dict:
     """All per-run metrics of one estimate set (only its completed steps).
 
     Parameters
@@ -281,13 +295,18 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
         True positions of the same points at the same times, in the frame of the predictions (m).
     level : float
         Level of the NIS bands.
+    fit_frames : int, optional
+        Frames 0 .. N-1 that fitted the parameters the run used (``heartcv fit --frames``): the prediction error is
+        also split into the frames within the fit (1 <= k < N, in-sample) and after it (k >= N, out-of-sample).
 
     Returns
     -------
     dict with, in SI units: ``completed_steps``, ``prediction_error_mean_m`` / ``_std_m`` / ``_rms_m`` /
     ``_count`` (steps k ≥ 1, seen points, the held-out points of ``meta['heldout_points']`` excluded),
     ``heldout_prediction_error_mean_m`` / ``_rms_m`` / ``_count`` and ``heldout_points`` (the same over the
-    held-out points only; None / 0 without), ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the filtered
+    held-out points only; None / 0 without), with ``fit_frames`` N (None / 0 < N < completed steps: None for all)
+    ``prediction_error_within_fit_mean_m`` / ``_count`` (1 <= k < N), ``prediction_error_after_fit_mean_m`` /
+    ``_count`` (k >= N) and ``heldout_prediction_error_after_fit_mean_m``, ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the filtered
     positions ``est.filtered`` against the truth: steps k ≥ 1, seen points; NaN without truth or without
     ``filtered`` in the file), ``prediction_truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the one-step
     predictions against the truth, over the same (k, p); NaN without truth), ``nis_mean``,
@@ -317,6 +336,7 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
         "heldout_prediction_error_count": hp["count"],
         "heldout_points": int(held.sum()),
     }
+    out.update(_fit_split(norms, held_norms if held.any() else None, fit_frames, c))
     none = {"mean": np.nan, "std": np.nan, "rms": np.nan}
     f_mean = f_var = p_mean = p_var = np.full(c, np.nan)
     f_pool = p_pool = none
@@ -416,7 +436,8 @@ def theta_truth_agreement(theta, theta_std, truth_theta, estimated, *, first: in
     return {"correlation": corr, "coverage_2sigma": cover}
 
 
-def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=None, level: float = 0.95) -> dict:
+def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=None, level: float = 0.95,
+                 fit_frames: int | None = None) -> dict:
     """The metrics of several runs over one sequence (the numbers of ``heartcv report``'s metrics.json).
 
     Parameters
@@ -429,6 +450,8 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         True parameters per frame (SI).
     level : float
         Level of the NIS bands.
+    fit_frames : int, optional
+        The fitted frames, one split for every run (:func:`estimator_metrics`).
 
     Returns
     -------
@@ -442,13 +465,13 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         ``mixed`` (some run is of another sequence, :func:`sequence_mismatch`);
         ``measurement_truth_error_mean_m`` (of the first run that has one, else None);
         ``ratio_ge_to_kf_prediction_error`` and ``ratio_ge_to_kf_truth_error`` (runs labelled ``ge`` and
-        ``kf``; None without both or a non-positive denominator).
+        ``kf``; None without both or a non-positive denominator); ``fit_frames`` (as given).
     """
     truth_positions = truth_positions or {}
     per = {}
     for label, est in runs.items():
         pos = truth_positions.get(label)
-        m = estimator_metrics(est, pos, level)
+        m = estimator_metrics(est, pos, level, fit_frames)
         m["measurement_truth_error_mean_m"] = (pooled_stats(measurement_truth_error_norms(est, pos)[1:])["mean"]
                                                if pos is not None else np.nan)
         c = completed(est)
@@ -476,6 +499,7 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         "measurement_truth_error_mean_m": own[0] if own else None,
         "ratio_ge_to_kf_prediction_error": ratio("prediction_error_mean_m"),
         "ratio_ge_to_kf_truth_error": ratio("truth_error_mean_m"),
+        "fit_frames": None if fit_frames is None else int(fit_frames),
     }
 
 

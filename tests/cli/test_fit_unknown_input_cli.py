@@ -74,6 +74,16 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
     assert doc["estimators"]["kf"]["heart_rate_std_hz"] == hr["std_hz"]
+    # the runs fitted to this very file record the fitted frames; the report splits their error there
+    assert e.meta["fit_frames"] == 90 and read_estimates(harm).meta["fit_frames"] == 90
+    assert "fit_frames" not in read_estimates(hold).meta
+    assert doc["fit_frames"] == 90
+    for k in ("kf", "harmonic"):
+        d = doc["estimators"][k]
+        n_in, n_out = d["prediction_error_within_fit_count"], d["prediction_error_after_fit_count"]
+        assert n_in > 0 and n_out > 0 and n_in + n_out == d["prediction_error_count"]
+        assert (d["prediction_error_within_fit_mean_m"] * n_in + d["prediction_error_after_fit_mean_m"] * n_out
+                == pytest.approx(d["prediction_error_mean_m"] * (n_in + n_out), rel=1e-9))
     assert doc["tracks"]["field_residual_lag1_mean_m"] is None   # 14 points: fewer than a field needs (30)
     assert (tmp_path / "rep" / "image_1_frame.png").read_bytes() == png.read_bytes()
     assert "image_1_frame.png" in doc["figures"]
@@ -84,6 +94,9 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert doc["estimators"]["harmonic"]["rigid_ar_order"] is None
     rigid = f"an order-{p_ar} autoregression" if p_ar else "a random walk"
     assert f"Rigid translation beyond the harmonics: {rigid}" in summary and summary.count("Rigid translation") == 1
+    assert "## Within and after the fitted frames" in summary and "after it (k ≥ 90)" in summary
+    assert "after it / hold's" in summary and "Within and after the fitted frames" in \
+        (tmp_path / "rep" / "index.html").read_text()
     # the GE samples the heart rate by default (its trace in the file, the final posterior in the meta), or holds it
     ge = str(tmp_path / "ge.npz")
     res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "ge",
@@ -102,6 +115,20 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert res.exit_code == 0, res.output
     assert "parameter_E.png" in json.loads(res.stdout)["figures"]
     assert "held at the fitted value by GE" in (rep_ge / "summary.md").read_text()
+    ge_doc = json.loads((rep_ge / "metrics.json").read_text())
+    assert ge_doc["fit_frames"] == 90 and ge_doc["estimators"]["hold"]["prediction_error_after_fit_mean_m"] > 0
+    ratio = (ge_doc["estimators"]["ge"]["prediction_error_after_fit_mean_m"]
+             / ge_doc["estimators"]["hold"]["prediction_error_after_fit_mean_m"])
+    assert f"| {ratio:.3f} |" in (rep_ge / "summary.md").read_text()
+    # parameters fitted to another file: every frame is out-of-sample, no split
+    other = str(tmp_path / "other.npz")
+    m0 = read_measurements(blind_file)
+    write_measurements(other, dataclasses.replace(m0, positions=m0.positions + 1e-7))
+    kf_other = str(tmp_path / "kf_other.npz")
+    res = CliRunner().invoke(main, ["track", other, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "-o", kf_other])
+    assert res.exit_code == 0, res.output
+    assert "fit_frames" not in read_estimates(kf_other).meta
     ge2 = str(tmp_path / "ge_hold.npz")
     res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "ge",
                                     "--hold-heart-rate", "-o", ge2])

@@ -371,3 +371,28 @@ def test_heldout_neighbour_oracle_exact_on_a_rigid_motion_and_noise_by_formula()
     np.testing.assert_allclose(o / h, np.sqrt(1 + 1 / n), rtol=0.03)
     with pytest.raises(ValueError, match="heldout"):
         heldout_neighbour_oracle(y, held[:10])
+
+
+def test_fit_split_within_and_after_exact():
+    # four steps, two points (x 1e-4 m): k = 0: 5, -; k = 1: 3, 4; k = 2: 1, 1; k = 3: 2, unseen
+    e = np.concatenate([E1, [[[0.0, 2.0, 0.0], [NAN, NAN, NAN]]] * np.array(1e-4)])
+    m = tm.estimator_metrics(_est(e), fit_frames=2)
+    assert m["prediction_error_within_fit_mean_m"] == pytest.approx(3.5e-4, rel=1e-14)     # k = 1 only
+    assert m["prediction_error_within_fit_count"] == 2
+    assert m["prediction_error_after_fit_mean_m"] == pytest.approx(4e-4 / 3, rel=1e-14)    # k = 2, 3: 1, 1, 2
+    assert m["prediction_error_after_fit_count"] == 3
+    assert m["heldout_prediction_error_after_fit_mean_m"] is None
+    # point 1 held out: the split leaves it out of both parts and takes its own mean after the fit
+    h = tm.estimator_metrics(_est(e, meta={"heldout_points": [1]}), fit_frames=2)
+    assert h["prediction_error_within_fit_mean_m"] == pytest.approx(3e-4, rel=1e-14)
+    assert h["prediction_error_after_fit_mean_m"] == pytest.approx(1.5e-4, rel=1e-14)
+    assert h["heldout_prediction_error_after_fit_mean_m"] == pytest.approx(1e-4, rel=1e-14)
+    # the parts pool back to the whole (counts weight the means)
+    whole = tm.estimator_metrics(_est(e))
+    pooled = (m["prediction_error_within_fit_mean_m"] * 2 + m["prediction_error_after_fit_mean_m"] * 3) / 5
+    assert pooled == pytest.approx(whole["prediction_error_mean_m"], rel=1e-14)
+    # no split: without fit_frames, or when the fit covers every completed step
+    for n in (None, 4, 7, 0):
+        s = tm.estimator_metrics(_est(e), fit_frames=n)
+        assert s["prediction_error_after_fit_mean_m"] is None and s["prediction_error_within_fit_mean_m"] is None
+    assert tm.compare_runs({"kf": _est(e)}, fit_frames=3)["per_run"]["kf"]["prediction_error_after_fit_count"] == 1
