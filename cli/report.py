@@ -155,8 +155,14 @@ def _headline(doc) -> str:
 
 
 # -- inputs -----------------------------------------------------------------------------------------
+def _base_label(est) -> str:
+    """The estimator's name, ``name-noinput`` for a run with its estimated input pinned at zero (--without-input)."""
+    return est.estimator + ("-noinput" if est.meta.get("without_input") else "")
+
+
 def _load_estimates(paths) -> dict:
-    """label -> {'path', 'est'}; labels are the estimator names, ``name:stem`` where a name repeats."""
+    """label -> {'path', 'est'}; labels are the estimator names (``name-noinput`` for a --without-input run),
+    ``name:stem`` where a name repeats."""
     from heartcv.tracker.io import read_estimates
 
     loaded = []
@@ -166,10 +172,10 @@ def _load_estimates(paths) -> dict:
             log.warning("%s: partial run (%d of %d steps completed); only the completed steps are used", p,
                         est.completed_steps, est.times.size)
         loaded.append((Path(p), est))
-    names = [e.estimator for _, e in loaded]
+    names = [_base_label(e) for _, e in loaded]
     runs = {}
     for i, (p, est) in enumerate(loaded):
-        label = est.estimator if names.count(est.estimator) == 1 else f"{est.estimator}:{p.stem}"
+        label = names[i] if names.count(names[i]) == 1 else f"{names[i]}:{p.stem}"
         if label in runs:
             label = f"{label}-{i + 1}"
         runs[label] = {"path": p, "est": est}
@@ -423,6 +429,7 @@ PER_ESTIMATOR_KEYS = (
     "heldout_prediction_error_mean_m", "heldout_prediction_error_rms_m", "heldout_prediction_error_count",
     "heldout_points", "prediction_error_within_fit_mean_m", "prediction_error_within_fit_count",
     "prediction_error_after_fit_mean_m", "prediction_error_after_fit_count",
+    "prediction_error_after_fit_continuing_mean_m", "prediction_error_after_fit_continuing_count",
     "heldout_prediction_error_after_fit_mean_m")
 
 
@@ -438,6 +445,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
                                                          "theta_truth_coverage_2sigma")}
         d.update(estimator=est.estimator, file=str(r["path"]), steps=int(est.times.size), partial=not est.complete,
                  estimated=list(est.meta.get("estimated", [])), rigid_ar_order=est.meta.get("rigid_ar_order"),
+                 without_input=bool(est.meta.get("without_input", False)),
                  **{f"{r}_{k}": est.meta.get(f"{r}_{k}") for r in ("heart_rate", "respiration_rate")
                     for k in ("hz", "std_hz", "source")})
         estimators[label] = d

@@ -67,6 +67,12 @@ def _facts(doc) -> list:
         if doc[key] is not None:
             facts.append(f"GE / KF mean {what}: {doc[key]:.3f}.")
     facts += _heart_rates(doc)
+    for label, e in doc["estimators"].items():
+        if e.get("without_input"):
+            base = e["estimator"]
+            facts.append(f"{label}: the estimated input's harmonics pinned at zero (heartcv track --without-input), "
+                         f"the rigid motion unchanged: the difference to {base} is what the pressure-driven "
+                         f"deformation adds" + _ablation_ratio(doc, label, base) + ".")
     tr = doc["truth"]
     facts.append(f"Truth: {tr['kind']} ({doc['inputs']['truth']})." if tr["kind"] else "Truth: none given.")
     if doc["measurement_truth_error_mean_m"] is not None:
@@ -78,6 +84,18 @@ def _facts(doc) -> list:
                  "error: of the one-step predictions. Both over the points seen in each frame, the observations "
                  "of the measurements' own error against the truth.")
     return facts
+
+
+def _ablation_ratio(doc, label, base) -> str:
+    """'' or the ratio of a --without-input run's prediction error (overall; after the fit) to its base run's."""
+    a, b = doc["estimators"][label], doc["estimators"].get(base)
+    if not b or a["prediction_error_mean_m"] is None or not b["prediction_error_mean_m"]:
+        return ""
+    out = f" ({label} / {base} prediction error: {a['prediction_error_mean_m'] / b['prediction_error_mean_m']:.3f}"
+    after_a, after_b = a.get("prediction_error_after_fit_mean_m"), b.get("prediction_error_after_fit_mean_m")
+    if after_a is not None and after_b:
+        out += f"; after the fitted frames {after_a / after_b:.3f}"
+    return out + ")"
 
 
 def _track_facts(tr, noise_norm) -> list:
@@ -144,17 +162,25 @@ def _fit_split_rows(doc):
     est = doc["estimators"]
     if n is None or all(e.get("prediction_error_after_fit_mean_m") is None for e in est.values()):
         return None
-    hold = (est.get("hold") or {}).get("prediction_error_after_fit_mean_m")
+    hold = est.get("hold") or {}
+
+    def ratio(e, key):
+        v, h = e.get(key), hold.get(key)
+        return f"{v / h:.3f}" if v is not None and h else "–"
+
     head = ["estimator", f"pred. error within the fit (1 ≤ k < {n})", f"pred. error after it (k ≥ {n})",
-            "after it / hold's", "held-out pred. error after it"]
+            "after it / hold's", "after it, tracks seen the frame before", "the same / hold's",
+            "held-out pred. error after it"]
     rows = []
     for label, e in est.items():
-        after = e.get("prediction_error_after_fit_mean_m")
-        rows.append([label, mm(e.get("prediction_error_within_fit_mean_m")), mm(after),
-                     f"{after / hold:.3f}" if after is not None and hold else "–",
+        rows.append([label, mm(e.get("prediction_error_within_fit_mean_m")),
+                     mm(e.get("prediction_error_after_fit_mean_m")), ratio(e, "prediction_error_after_fit_mean_m"),
+                     mm(e.get("prediction_error_after_fit_continuing_mean_m")),
+                     ratio(e, "prediction_error_after_fit_continuing_mean_m"),
                      mm(e.get("heldout_prediction_error_after_fit_mean_m"))])
     intro = (f"The parameters (and an estimated input) were fitted to frames 0–{n - 1} (heartcv fit --frames): the "
-             f"predictions of frames 1–{n - 1} are in-sample, those from frame {n} on out-of-sample.")
+             f"predictions of frames 1–{n - 1} are in-sample, those from frame {n} on out-of-sample. Tracks seen the "
+             "frame before leave out those re-appearing after a gap, which hold predicts at their last position.")
     return "Within and after the fitted frames", intro, head, rows
 
 

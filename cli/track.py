@@ -98,6 +98,10 @@ def _odd_nodes(ctx, param, value):
                    "'auto': its standard deviation per frame by maximum likelihood of the KF's innovations over the "
                    "fitted frames (--params; else the first 100), 'none' among the candidates; or a standard "
                    "deviation per frame in metres.")
+@click.option("--without-input", is_flag=True,
+              help="kf/ge/ukf/ekf with an estimated input (--params of a fit without pressure): pin the input's "
+                   "harmonics at zero, the rigid motion unchanged. An ablation: compared with the same run with the "
+                   "input, it measures what the pressure-driven deformation adds (docs/model.md 17).")
 @click.option("--sample-heart-rate/--hold-heart-rate", default=True, show_default=True,
               help="ge with an estimated input (--params of a fit without pressure): carry the heart rate (and the "
                    "respiration rate, when the fit saw one) among the sampled parameters (docs/model.md 17), or "
@@ -106,8 +110,8 @@ def _odd_nodes(ctx, param, value):
 @json_opt
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
-          adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, sample_heart_rate, output,
-          as_json):
+          adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, without_input,
+          sample_heart_rate, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -125,6 +129,10 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     _check_scope(estimator, nodes, truncation, joseph, heart_rate_hz)
     if estimator in BASELINES and track_offsets is not None:
         raise BadInput("--track-offsets applies to the model-based estimators (kf, ge, ukf, ekf) only")
+    if estimator in BASELINES and without_input:
+        raise BadInput("--without-input applies to the model-based estimators (kf, ge, ukf, ekf) only")
+    if without_input and params_file is None:
+        raise BadInput("--without-input needs --params: the parameters file of a fit with an estimated input")
     part = partial_path(output)
     guard_outputs({"-o/--output": output, "the partial file of -o": part},
                   {"MEASUREMENTS": measurements, "--model": model_file, "--params": params_file},
@@ -140,7 +148,14 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     if fitted is not None:
         m = _fitted_patch(m, fitted, params_file)
         input_block = _input_block(m, meas, fitted, params_file, measurements)
+        if without_input and input_block is None:
+            raise BadInput(f"--without-input: {params_file} holds no estimated input (estimated_input; the fit had "
+                           "a recorded pressure)")
         meas = _with_params(m, meas, fitted, measurements, params_file, model_file, input_block)
+        if without_input:   # after the references: the same points, offsets and held-out tracks as with the input
+            input_block = input_block.without_input()
+            meta["without_input"] = True
+            log.info("--without-input: the estimated input's harmonics pinned at zero (an ablation)")
         meta["params"] = str(params_file)
         meta["inputs_hash"]["params"] = file_hash(params_file)
         if fitted.frames and (fitted.meta.get("inputs_hash") or {}).get("measurements") == \

@@ -271,17 +271,31 @@ def _last_by_name(rows) -> dict:
     return dict(zip(NAMES, map(float, rows[-1]), strict=True))
 
 
-def _fit_split(norms, held_norms, fit_frames, c) -> dict:
-    """The prediction error within the fitted frames (1 <= k < N) and after them (k >= N); None without a split."""
+def _seen(est: EstimateSet, c: int) -> np.ndarray:
+    """(c, P) whether each point was measured in each completed step: a finite innovation, or for a baseline (no
+    prediction before a point's first measurement) a finite ``filtered``, which is the measurement itself."""
+    seen = np.isfinite(np.asarray(est.innovations, float)[:c]).all(axis=2)
+    if est.meta.get("baseline") and est.filtered is not None:
+        seen |= np.isfinite(np.asarray(est.filtered, float)[:c]).all(axis=2)
+    return seen
+
+
+def _fit_split(norms, held_norms, seen, fit_frames, c) -> dict:
+    """The prediction error within the fitted frames (1 <= k < N) and after them (k >= N), there also over the
+    observations whose track was seen in the frame before (continuing, not re-appearing after a gap); None without
+    a split."""
     keys = ("prediction_error_within_fit_mean_m", "prediction_error_within_fit_count",
             "prediction_error_after_fit_mean_m", "prediction_error_after_fit_count",
+            "prediction_error_after_fit_continuing_mean_m", "prediction_error_after_fit_continuing_count",
             "heldout_prediction_error_after_fit_mean_m")
     n = None if fit_frames is None else int(fit_frames)
     if n is None or not 0 < n < c:
         return dict.fromkeys(keys)
     within, after = pooled_stats(norms[1:n]), pooled_stats(norms[n:])
+    cont = pooled_stats(np.where(seen[n - 1:-1], norms[n:], np.nan))
     held = pooled_stats(held_norms[n:])["mean"] if held_norms is not None else None
-    return dict(zip(keys, (within["mean"], within["count"], after["mean"], after["count"], held), strict=True))
+    return dict(zip(keys, (within["mean"], within["count"], after["mean"], after["count"], cont["mean"],
+                           cont["count"], held), strict=True))
 
 
 def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.95, fit_frames: int | None = None
@@ -306,10 +320,11 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
     ``heldout_prediction_error_mean_m`` / ``_rms_m`` / ``_count`` and ``heldout_points`` (the same over the
     held-out points only; None / 0 without), with ``fit_frames`` N (None / 0 < N < completed steps: None for all)
     ``prediction_error_within_fit_mean_m`` / ``_count`` (1 <= k < N), ``prediction_error_after_fit_mean_m`` /
-    ``_count`` (k >= N) and ``heldout_prediction_error_after_fit_mean_m``, ``truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the filtered
-    positions ``est.filtered`` against the truth: steps k ≥ 1, seen points; NaN without truth or without
-    ``filtered`` in the file), ``prediction_truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the one-step
-    predictions against the truth, over the same (k, p); NaN without truth), ``nis_mean``,
+    ``_count`` (k >= N), ``prediction_error_after_fit_continuing_mean_m`` / ``_count`` (k >= N, the point also
+    seen at k - 1) and ``heldout_prediction_error_after_fit_mean_m``, ``truth_error_mean_m`` / ``_std_m`` /
+    ``_rms_m`` (the filtered positions ``est.filtered`` against the truth: steps k ≥ 1, seen points; NaN without
+    truth or without ``filtered`` in the file), ``prediction_truth_error_mean_m`` / ``_std_m`` / ``_rms_m`` (the
+    one-step predictions against the truth, over the same (k, p); NaN without truth), ``nis_mean``,
     ``nis_mean_dof``, ``nis_mean_band``, ``nis_in_band_fraction``, ``theta_final``, ``theta_std_final`` (dicts
     by parameter name, last completed step; NaN if none), ``step_time_median_s``, ``step_time_p95_s``,
     ``truncation_events``, and the per-step arrays under ``'per_step'``: ``times``, ``error_mean``,
@@ -336,7 +351,7 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
         "heldout_prediction_error_count": hp["count"],
         "heldout_points": int(held.sum()),
     }
-    out.update(_fit_split(norms, held_norms if held.any() else None, fit_frames, c))
+    out.update(_fit_split(norms, held_norms if held.any() else None, _seen(est, c), fit_frames, c))
     none = {"mean": np.nan, "std": np.nan, "rms": np.nan}
     f_mean = f_var = p_mean = p_var = np.full(c, np.nan)
     f_pool = p_pool = none

@@ -481,6 +481,15 @@ class InputBlock:
         start = self.slices[3].stop
         return slice(start, start + 3 * self.ar_order)
 
+    def without_input(self) -> InputBlock:
+        """The same block with the input's oscillators ``z_p`` pinned at zero (prior mean 0, prior and random walk
+        1e-12 in state units): the model's input stays zero, so the patch deforms by its own dynamics only while
+        the rigid motion is unchanged. An ablation: what the estimated input adds to the predictions."""
+        zp = self.slices[0]
+        mean0, std0, q = self.mean0.copy(), self.std0.copy(), self.noise_std.copy()
+        mean0[zp], std0[zp], q[zp] = 0.0, 1e-12, 1e-12
+        return replace(self, mean0=mean0, std0=std0, noise_std=q)
+
     def with_frequency(self, frequency_hz: float, respiration_hz: float | None = None) -> InputBlock:
         """The same block at another heart rate (and respiration rate): the GE's samples of the sampled rates."""
         if respiration_hz is None or self.respiration_harmonics == 0:

@@ -82,6 +82,7 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
         d = doc["estimators"][k]
         n_in, n_out = d["prediction_error_within_fit_count"], d["prediction_error_after_fit_count"]
         assert n_in > 0 and n_out > 0 and n_in + n_out == d["prediction_error_count"]
+        assert 0 < d["prediction_error_after_fit_continuing_count"] <= n_out
         assert (d["prediction_error_within_fit_mean_m"] * n_in + d["prediction_error_after_fit_mean_m"] * n_out
                 == pytest.approx(d["prediction_error_mean_m"] * (n_in + n_out), rel=1e-9))
     assert doc["tracks"]["field_residual_lag1_mean_m"] is None   # 14 points: fewer than a field needs (30)
@@ -95,7 +96,7 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     rigid = f"an order-{p_ar} autoregression" if p_ar else "a random walk"
     assert f"Rigid translation beyond the harmonics: {rigid}" in summary and summary.count("Rigid translation") == 1
     assert "## Within and after the fitted frames" in summary and "after it (k ≥ 90)" in summary
-    assert "after it / hold's" in summary and "Within and after the fitted frames" in \
+    assert "after it, tracks seen the frame before" in summary and "Within and after the fitted frames" in \
         (tmp_path / "rep" / "index.html").read_text()
     # the GE samples the heart rate by default (its trace in the file, the final posterior in the meta), or holds it
     ge = str(tmp_path / "ge.npz")
@@ -278,3 +279,58 @@ def test_report_reads_the_tracks_own_motion(tmp_path):
     for fact in ("The tracks' own motion", "Data-driven reference", "Held-out reference"):
         assert fact in summary
     assert "overstate" not in summary                            # the covariances are right here
+
+
+def test_without_input_is_an_ablation_of_the_estimated_input(tmp_path, blind_file):
+    """track --without-input pins the estimated input at zero: on the paper patch, whose deformation the pressure
+    alone drives, the KF predicts far worse without it; the report labels the run kf-noinput beside kf (the GE/KF
+    ratio still uses the kf run) and says what the input adds. Refused for a baseline, without --params, and for
+    the parameters of a fit with a recorded pressure (exit 2)."""
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90"])
+    assert res.exit_code == 0, res.output
+    runs = {}
+    for name, extra in (("kf", []), ("kf_noinput", ["--without-input"])):
+        out = str(tmp_path / f"{name}.npz")
+        res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                        "--holdout", "0.2", "--seed", "3", "-o", out] + extra)
+        assert res.exit_code == 0, res.output
+        runs[name] = out
+    a, b = read_estimates(runs["kf"]).meta, read_estimates(runs["kf_noinput"]).meta
+    assert b["without_input"] is True and "without_input" not in a
+    # only the input differs: the same points, references and held-out tracks
+    assert a["heldout_points"] == b["heldout_points"] and len(a["heldout_points"]) > 0
+    assert a["dropped_points"] == b["dropped_points"] and a["input_states"] == b["input_states"]
+    m = read_measurements(blind_file)
+
+    def err(path):   # over the tracks used in the updates, as the report's prediction error
+        e = read_estimates(path)
+        used = ~np.isin(e.point_ids, e.meta["heldout_points"])
+        d = np.linalg.norm(e.predictions[1:] - m.positions[1:], axis=-1)
+        return float(np.nanmean(d[:, used]))
+
+    assert err(runs["kf_noinput"]) > 2.0 * err(runs["kf"])
+    rep = tmp_path / "rep"
+    res = CliRunner().invoke(main, ["report", runs["kf"], runs["kf_noinput"], "-o", str(rep), "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert set(doc["estimators"]) == {"kf", "kf-noinput"} and doc["estimators"]["kf-noinput"]["without_input"]
+    e = doc["estimators"]
+    ratio = e["kf-noinput"]["prediction_error_mean_m"] / e["kf"]["prediction_error_mean_m"]
+    assert ratio == pytest.approx(err(runs["kf_noinput"]) / err(runs["kf"]), rel=1e-9)
+    assert f"kf-noinput / kf prediction error: {ratio:.3f}" in (rep / "summary.md").read_text()
+    # refusals
+    for args, why in ((["--estimator", "hold", "--params", params], "model-based estimators"),
+                      (["--estimator", "kf"], "needs --params")):
+        res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--without-input", "-o",
+                                        str(tmp_path / "x.npz")] + args)
+        assert res.exit_code == 2 and why in res.output, res.output
+    recorded = str(tmp_path / "recorded.npz")
+    assert CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "2", "--seed", "2", "-o",
+                                     recorded]).exit_code == 0
+    p_rec = str(tmp_path / "p_rec.yaml")
+    assert CliRunner().invoke(main, ["fit", recorded, "--model", PAPER, "-o", p_rec]).exit_code == 0
+    res = CliRunner().invoke(main, ["track", recorded, "--model", PAPER, "--params", p_rec, "--without-input", "-o",
+                                    str(tmp_path / "y.npz")])
+    assert res.exit_code == 2 and "holds no estimated input" in res.output, res.output
+    assert not (tmp_path / "x.npz").exists() and not (tmp_path / "y.npz").exists()

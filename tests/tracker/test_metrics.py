@@ -381,6 +381,23 @@ def test_fit_split_within_and_after_exact():
     assert m["prediction_error_within_fit_count"] == 2
     assert m["prediction_error_after_fit_mean_m"] == pytest.approx(4e-4 / 3, rel=1e-14)    # k = 2, 3: 1, 1, 2
     assert m["prediction_error_after_fit_count"] == 3
+    # continuing: seen at k - 1 too (k = 2: both points; k = 3: point 0)
+    assert m["prediction_error_after_fit_continuing_mean_m"] == pytest.approx(4e-4 / 3, rel=1e-14)
+    assert m["prediction_error_after_fit_continuing_count"] == 3
+    gap = e.copy()
+    gap[2, 0] = NAN                                   # point 0 unseen at k = 2: at k = 3 it re-appears
+    g = tm.estimator_metrics(_est(gap), fit_frames=2)
+    assert g["prediction_error_after_fit_count"] == 2 and g["prediction_error_after_fit_continuing_count"] == 1
+    assert g["prediction_error_after_fit_continuing_mean_m"] == pytest.approx(1e-4, rel=1e-14)   # point 1, k = 2
+    # a baseline has no prediction at a point's first measurement: its filtered (the measurement) says it was seen
+    first = e.copy()
+    first[1, 1] = NAN                                 # no innovation at k = 1 for point 1 ...
+    filt = np.zeros_like(e)
+    filt[0, 1] = NAN                                  # ... but measured there (filtered finite) for the baseline
+    b = tm.estimator_metrics(_est(first, filtered=filt, meta={"baseline": True}), fit_frames=2)
+    assert b["prediction_error_after_fit_continuing_count"] == 3
+    k = tm.estimator_metrics(_est(first, filtered=filt), fit_frames=2)   # a model-based run: an innovation or none
+    assert k["prediction_error_after_fit_continuing_count"] == 2
     assert m["heldout_prediction_error_after_fit_mean_m"] is None
     # point 1 held out: the split leaves it out of both parts and takes its own mean after the fit
     h = tm.estimator_metrics(_est(e, meta={"heldout_points": [1]}), fit_frames=2)
