@@ -324,8 +324,8 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 run = measure_sequence(frames, rig.cameras, opts, roi=roi, backend=backend)
     except InputError as exc:
         raise (exc if exc.path is not None else exc.in_file(sequence)) from None
-    except MeasureFailed as exc:
-        raise StageFailed(f"{sequence}: {exc}") from None
+    except MeasureFailed as exc:   # the images or the rig's cameras: name both
+        raise StageFailed(f"{sequence}: {exc} (cameras of {rig_file})") from None
     for k, msg in run.problems:
         log.warning("frame %d: %s; left out", k, msg)
     if run.skipped:

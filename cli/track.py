@@ -193,7 +193,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     except np.linalg.LinAlgError as exc:
         raise StageFailed(f"{estimator}: numerical failure ({exc}); no estimate file written") from None
     except EstimationDiverged as exc:
-        raise StageFailed(_diverged(exc, estimator, meas, meta, part, output)) from None
+        raise StageFailed(_diverged(exc, estimator, meas, meta, part, output, measurements)) from None
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
     for name in ("heart_rate", "respiration_rate"):   # the GE's sampled rates: their final posteriors
@@ -455,16 +455,18 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
                              rate=_rate_prior(estimator, input_block, fitted) if sample_heart_rate else None)
 
 
-def _diverged(exc, estimator, meas, meta, part, output) -> str:
-    """Write the steps done of a diverged run to the partial file; the failure message."""
+def _diverged(exc, estimator, meas, meta, part, output, measurements) -> str:
+    """Write the steps done of a diverged run to the partial file; the failure message (naming the measurement
+    file: its positions, covariances or inputs are what drove the estimate off)."""
     from heartcv.tracker.io import write_estimates
 
     where = ""
     if exc.partial is not None and exc.partial.completed_steps > 0:
         write_estimates(part, exc.partial, dict(meta, partial=True))
         where = f"; the {exc.partial.completed_steps} steps done were written to {part} (marked partial)"
-    return (f"{estimator} diverged at step {exc.step} (time {meas.times[exc.step]:.4g} s): the estimate became "
-            f"non-finite{where}; no estimate file written to {output}")
+    return (f"{estimator} diverged on {measurements} at step {exc.step} (time {meas.times[exc.step]:.4g} s): the "
+            f"estimate became non-finite (do its positions, covariances and inputs fit the model?){where}; no "
+            f"estimate file written to {output}")
 
 
 def _report(est, estimator, output, as_json, meta=None) -> None:

@@ -209,6 +209,25 @@ def write_estimates(path, e: EstimateSet, meta: dict | None = None):
     write_npz(path, ESTIMATE_FORMAT, arrays, md)
 
 
+def _check_report_meta(meta, path, K):
+    """The meta entries ``heartcv report`` reads (docs/formats.md §4): numbers made numbers (a numeric string
+    becomes its float), the rest checked; an InputError names the field."""
+    for key in ("heart_rate_hz", "heart_rate_std_hz", "respiration_rate_hz", "respiration_rate_std_hz"):
+        if meta.get(key) is not None:
+            meta[key] = get_field(meta, key, "float", path, lo=0, prefix="meta.")
+    for key in ("heart_rate_source", "respiration_rate_source"):
+        if meta.get(key) is not None:
+            get_field(meta, key, "str", path, prefix="meta.")
+    if meta.get("rigid_ar_order") is not None:
+        meta["rigid_ar_order"] = get_field(meta, "rigid_ar_order", "int", path, lo=0, hi=1000, prefix="meta.")
+    if meta.get("fit_frames") is not None:
+        meta["fit_frames"] = get_field(meta, "fit_frames", "int", path, lo=1, hi=max(K, 1), prefix="meta.")
+    ids = meta.get("heldout_points")
+    if ids is not None and (not isinstance(ids, list)
+                            or any(isinstance(i, bool) or not isinstance(i, int) or abs(i) >= 2**63 for i in ids)):
+        raise InputError(path, "a list of point ids (integers) expected", "meta.heldout_points")
+
+
 def read_estimates(path) -> EstimateSet:
     """Read and validate an estimate file (docs/formats.md §4)."""
     data, meta = read_npz(path, ESTIMATE_FORMAT, _EST_SCHEMA)
@@ -232,9 +251,10 @@ def read_estimates(path) -> EstimateSet:
         get_field(meta, "dt", "float", path, lo=0, prefix="meta.")
     if meta.get("patch_from_rig") is not None:
         _check_registration({"patch_from_rig": meta["patch_from_rig"]}, path, "meta")
-    for key in ("partial", "joseph", "modal_path"):
+    for key in ("partial", "joseph", "modal_path", "without_input"):
         if key in meta:
             get_field(meta, key, "bool", path, prefix="meta.")
+    _check_report_meta(meta, path, K)
     try:
         return EstimateSet(estimator, *(data[k] for k in _EST_ARRAYS), steps, meta,
                            *(data.get(k) for k in _EST_OPTIONAL))

@@ -238,6 +238,7 @@ def test_nothing_trackable_exit_1_without_output(case):
     res = _measure(case, "--mask", case["root"] / "mask.png")
     assert res.exit_code == 1, res.output
     assert "no surface point could be tracked" in res.stderr and "Traceback" not in res.output
+    assert f"(cameras of {case['rig']})" in res.stderr      # the rig is named beside the sequence
     _assert_no_output(case)
 
 

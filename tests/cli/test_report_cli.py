@@ -242,3 +242,28 @@ def test_render_truth_positions_into_the_patch_frame():
     assert np.isnan(got[:, 1]).all()
     angle, shift = pose_magnitude(truth_from_rig)
     assert angle == pytest.approx(2.0, rel=1e-12) and shift == pytest.approx(1e-3, rel=1e-12)
+
+
+def test_report_meta_entries_are_checked(run, tmp_path):
+    """The estimate meta that the report reads is validated: a wrong type exits 2 naming the file and the field; a
+    numeric string is read as its number (the fuzzer found meta.rigid_ar_order = [] crashing the summary)."""
+    from heartcv.tracker.io import read_estimates, write_estimates
+
+    est = read_estimates(run / "kf.npz")
+    K = est.times.size
+    cases = {"rigid_ar_order": [], "heart_rate_hz": [1.0], "fit_frames": K + 1, "without_input": "yes",
+             "heldout_points": ["a"], "heart_rate_source": 3}
+    for key, bad in cases.items():
+        path = tmp_path / f"bad_{key}.npz"
+        write_estimates(path, est, dict(est.meta, **{key: bad}))
+        res = _report([path, "-o", tmp_path / f"rep_{key}"])
+        assert res.exit_code == 2 and str(path) in res.output and f"meta.{key}" in res.output, res.output
+        assert "Traceback" not in res.output and not (tmp_path / f"rep_{key}").exists()
+    good = tmp_path / "good.npz"
+    write_estimates(good, est, dict(est.meta, heart_rate_hz="1.25", heart_rate_source="given", rigid_ar_order=2,
+                                    fit_frames=K // 2))
+    res = _report([good, "-o", tmp_path / "rep_good", "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert doc["estimators"]["kf"]["heart_rate_hz"] == 1.25 and doc["fit_frames"] == K // 2
+    assert "Heart rate: 75 bpm" in (tmp_path / "rep_good" / "summary.md").read_text()

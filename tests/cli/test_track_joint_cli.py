@@ -135,7 +135,7 @@ def test_diverging_run_exits_1_and_writes_only_a_partial_file(tmp_path, meas_fil
     out = tmp_path / "ge.npz"
     res = _run(["track", str(bad), "--model", PAPER, "--estimator", "ge", "-o", str(out)])
     assert res.exit_code == 1
-    assert "diverged at step 5" in res.output and "no estimate file written" in res.output
+    assert f"diverged on {bad} at step 5" in res.output and "no estimate file written" in res.output
     assert not out.exists()
     part = read_estimates(tmp_path / "ge.partial.npz")
     assert part.completed_steps == 5 and not part.complete and part.meta["partial"] is True
