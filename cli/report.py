@@ -82,11 +82,8 @@ def _fit_frames(runs) -> int | None:
     """The frames that fitted the runs' parameters (``meta.fit_frames``, heartcv track --params), one split for
     every run: the largest where they differ (no run's in-sample frame counts as after its fit); None when no run
     records one."""
-    found = {}
-    for label, r in runs.items():
-        n = r["est"].meta.get("fit_frames")
-        if isinstance(n, (int, float)) and not isinstance(n, bool) and n >= 1:
-            found[label] = int(n)
+    found = {label: r["est"].meta["fit_frames"] for label, r in runs.items()      # an int >= 1 (read_estimates)
+             if r["est"].meta.get("fit_frames") is not None}
     if not found:
         return None
     if len(set(found.values())) > 1:
