@@ -46,6 +46,12 @@ MAX_STARTS = 1000
               help="An estimated input's rigid translation beyond the heartbeat's and respiration's harmonics: its "
                    "increments a vector autoregression of this order fitted over the fitted frames; 'auto' the "
                    "order 0-4 with the least BIC (0: a random walk); 'none' a random walk (docs/model.md 17).")
+@click.option("--field-degree", type=click.Choice(("0", "1", "2")), default=None,
+              help="An estimated input's rigid motion as a smooth displacement field of this degree along the "
+                   "observed surface [default: 1, an affine field: translation, in-plane rotation, stretch and "
+                   "shear, and tilt]; 0: a translation. With a field its increments are a vector autoregression, "
+                   "its order and ridge chosen by predicting the last 30 %% of the fitted frames "
+                   "(docs/model.md 17).")
 @click.option("--patch", "patch_mode", type=click.Choice(("auto", "model", "observed")), default="auto",
               show_default=True,
               help="Rig-frame files: 'model' places the model file's patch by its surface and motion; 'observed' "
@@ -55,7 +61,7 @@ MAX_STARTS = 1000
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
 def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, respiration,
-        rigid_ar, patch_mode, as_json):
+        rigid_ar, field_degree, patch_mode, as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -83,6 +89,8 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
         raise BadInput("--harmonics applies to an estimated input (--input estimate) only")
     if rigid_ar != "auto" and not estimate_input:
         raise BadInput("--rigid-ar applies to an estimated input (--input estimate) only")
+    if field_degree is not None and not estimate_input:
+        raise BadInput("--field-degree applies to an estimated input (--input estimate) only")
     if patch_mode == "observed" and meas.frame != "rig":
         raise BadInput(f"--patch observed: {measurements} is already in the patch frame (registered)")
     registration = estimated_input = None
@@ -94,7 +102,9 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
                 result, estimated_input = _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations,
                                                               harmonics, respiration == "auto",
                                                               None if rigid_ar == "auto" else
-                                                              0 if rigid_ar == "none" else int(rigid_ar))
+                                                              0 if rigid_ar == "none" else int(rigid_ar),
+                                                              None if field_degree is None
+                                                              else int(field_degree))
             else:
                 result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
                                  max_evaluations=max_evaluations)
@@ -195,7 +205,7 @@ def _observed_patch(rig_meas, m, output):
 
 
 def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True,
-                       rigid_ar_order=None):
+                       rigid_ar_order=None, field_degree=None):
     """The fit with an estimated input (heart rate from the tracks, harmonics and rigid motion profiled; the
     respiration rate from the rigid motion when ``respiration`` and one is seen): ``(FitResult, estimated_input
     entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
@@ -207,6 +217,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     from heartcv.tracker.fit import fit as run_fit
     from heartcv.tracker.model import build_model
     from heartcv.tracker.unknown_input import (
+        FIELD_DEGREE,
         HARMONICS,
         NoHeartbeat,
         Respiration,
@@ -216,6 +227,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     )
 
     H = HARMONICS if harmonics is None else harmonics
+    field_degree = FIELD_DEGREE if field_degree is None else int(field_degree)
     K = meas.n_frames if frames is None else min(frames, meas.n_frames)
     try:
         hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H)
@@ -233,7 +245,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
         log.info("E held at the model file's %.4g Pa: without a recorded pressure only E/scale is determined",
                  cfg.theta[3])
     column = m.input_names.index("pressure")
-    prob = UnknownInputProblem(fit_model, meas, hr.frequency_hz, H, column, frames=K)
+    prob = UnknownInputProblem(fit_model, meas, hr.frequency_hz, H, column, frames=K, centred=True)
     result = run_fit(fit_model, meas, np.random.default_rng(seed), starts=starts, max_evaluations=max_evaluations,
                      problem=prob)
     if not result.converged:
@@ -247,12 +259,18 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                  60 * resp.frequency_hz, resp.cycles, 100 * resp.explained)
     else:
         log.info("no respiration rate: %s (the random-walk translation takes it up)", resp.reason)
+    field = frame = None
+    if field_degree:
+        frame = prob.field_frame()
+        field = prob.residual_field(result.theta, field_degree, frame)
     block = input_block_from_fit(hr.frequency_hz, H, prob.dt, len(m.input_names), column, alpha, alpha_std,
                                  rigid[:, :3], meas.times[:K], respiration_hz=resp.frequency_hz,
-                                 rigid_ar_order=rigid_ar_order)
-    log.info("rigid translation: %s", f"an order-{block.ar_order} autoregression of its increments"
-             + (" (BIC)" if rigid_ar_order is None else "") if block.ar_order else "a random walk"
-             + (" (BIC)" if rigid_ar_order is None else ""))
+                                 rigid_ar_order=rigid_ar_order, field=field, field_degree=field_degree,
+                                 field_frame=frame, centred=True)
+    how = " (BIC)" if field_degree == 0 else " (predicting the last 30 % of the fitted frames)"
+    log.info("rigid %s: %s", "translation" if field_degree == 0 else f"motion, a degree-{field_degree} field",
+             (f"an order-{block.ar_order} autoregression of its increments" if block.ar_order else "a random walk")
+             + (how if rigid_ar_order is None else ""))
     entry = block.to_dict()
     entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "std_hz": hr.std_hz, "bpm": 60 * hr.frequency_hz,
                              "peak_hz": hr.peak_hz,
@@ -260,6 +278,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                  respiration=resp.to_dict(),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
                  held_fixed=["E"] if fit_model is not m else [], fit_frames=K, rigid_ar_order=block.ar_order,
+                 field_degree=int(field_degree),
                  translation_std_m=[float(v) for v in np.std(rigid[:, :3], axis=0)])
     return result, entry
 
@@ -297,6 +316,7 @@ def _summary(result, output) -> dict:
         "respiration_hz": None if result.estimated_input is None
         else (result.estimated_input.get("respiration") or {}).get("frequency_hz"),
         "rigid_ar_order": None if result.estimated_input is None else result.estimated_input.get("rigid_ar_order"),
+        "field_degree": None if result.estimated_input is None else result.estimated_input.get("field_degree"),
         "output": output,
     }
     return summary

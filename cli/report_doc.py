@@ -147,10 +147,11 @@ def _heart_rates(doc) -> list:
     orders = {}
     for label, e in doc["estimators"].items():
         if e.get("rigid_ar_order") is not None:
-            orders.setdefault(int(e["rigid_ar_order"]), []).append(label)
-    for p, labels in orders.items():
+            orders.setdefault((int(e["rigid_ar_order"]), int(e.get("field_degree") or 0)), []).append(label)
+    for (p, d), labels in orders.items():
         what = f"an order-{p} autoregression of its increments" if p else "a random walk"
-        lines.append(f"Rigid translation beyond the harmonics: {what} (heartcv fit, docs/model.md 17), in "
+        motion = "translation" if d == 0 else f"motion (a degree-{d} displacement field along the surface)"
+        lines.append(f"Rigid {motion} beyond the harmonics: {what} (heartcv fit, docs/model.md 17), in "
                      f"{', '.join(labels)}.")
     return lines
 

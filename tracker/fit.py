@@ -68,6 +68,12 @@ class FitProblem:
         Use the first ``frames`` frames (default all); at least 2.
     points : ObservedPoints, optional
         Placement of the points on the model (default :func:`tracker.tracking.locate_points`).
+    inputs, translation : optional
+        The model's inputs (K, n_u) and the rigid translation (K, 3) (default: the measurement set's columns).
+    centring : ndarray (3, r), optional
+        Subtracted from every point's displacement map on the model's positions (:attr:`UnknownInputProblem.
+        centring`: the model's displacements centred over another problem's points, so that a translation in that
+        gauge applies here).
 
     Attributes
     ----------
@@ -78,7 +84,7 @@ class FitProblem:
     """
 
     def __init__(self, model: PatchModel, meas: MeasurementSet, frames: int | None = None,
-                 points: ObservedPoints | None = None, inputs=None, translation=None):
+                 points: ObservedPoints | None = None, inputs=None, translation=None, centring=None):
         if frames is not None and int(frames) < 2:
             raise ValueError(f"frames: at least 2 frames are needed for a fit, got {frames}")
         K = meas.n_frames if frames is None else min(int(frames), meas.n_frames)
@@ -99,7 +105,8 @@ class FitProblem:
         P = int(use.sum())
         r = model.r
         H = pts.observation.H.reshape(-1, 3, 2 * r)[use]  # (P, 3, 2r)
-        self.H_q = H[:, :, :r].reshape(3 * P, r)  # positions depend on q only
+        Hq = H[:, :, :r] - (0.0 if centring is None else np.asarray(centring, float).reshape(3, r))
+        self.H_q = Hq.reshape(3 * P, r)  # positions depend on q only
         self.seen = seen[:, use]
         self.y = (y[:, use] - trans[:, None, :])[self.seen]  # (n_obs, 3)
         cov = meas.covariances[:K, pts.keep][:, use][self.seen]  # (n_obs, 3, 3)
@@ -194,10 +201,18 @@ class UnknownInputProblem(FitProblem):
     ``dof = 3 n_obs - 3 P - 3 (K - 1) - 2 H`` (before the estimated parameters). ``rotation=True`` adds a small
     rotation per frame about the patch origin (6 rigid unknowns per frame; the estimators carry the translation
     only).
+
+    ``centred=True`` centres the model's displacements over the fitted points (:attr:`centring`, the mean of their
+    displacement maps, subtracted from each): with a free translation per frame the model's mean displacement and
+    the translation are not separable, and centring fixes the split, so that the translation is the tracks' mean
+    motion rather than that minus the model's mean bulge (docs/model.md 17). theta, the amplitudes, the residual,
+    the cost and the offsets are unchanged (the translation starts at the model's mean displacement of the first
+    frame instead of zero); the translation moves by the model's mean displacement.
     """
 
     def __init__(self, model: PatchModel, meas: MeasurementSet, frequency_hz: float, harmonics: int, column: int,
-                 frames: int | None = None, points: ObservedPoints | None = None, rotation: bool = False):
+                 frames: int | None = None, points: ObservedPoints | None = None, rotation: bool = False,
+                 centred: bool = False):
         from .unknown_input import harmonic_basis
 
         n_u = len(model.input_names)
@@ -208,6 +223,12 @@ class UnknownInputProblem(FitProblem):
             if j != column and name in meas.input_names:
                 known[:, j] = meas.input_columns([name])[:, 0]
         super().__init__(model, meas, frames, points, inputs=known, translation=np.zeros((meas.n_frames, 3)))
+        r = model.r
+        self.centring = None
+        if centred:
+            Hq = self.H_q.reshape(self.n_points, 3, r)
+            self.centring = Hq.mean(axis=0)                                      # (3, r)
+            self.H_q = (Hq - self.centring).reshape(3 * self.n_points, r)
         K = self.frames
         self.frequency_hz = float(frequency_hz)
         self.harmonics = int(harmonics)
@@ -224,12 +245,12 @@ class UnknownInputProblem(FitProblem):
 
     def _design(self, theta):
         """Model displacements at the seen observations: known-input part (n_obs, 3) and per amplitude
-        (n_obs, 3, 2H)."""
+        (n_obs, 3, 2H); and the first frame's positions, known-input part (r,) and per amplitude (r, 2H)."""
         X = self.simulate(theta, self._U)  # (K, 2r, 1 + 2H)
         r = self.model.r
         D = np.einsum("krj,pcr->kpcj", X[:, :r], self.H_q.reshape(self.n_points, 3, r))  # (K, P, 3, J)
         D = D[self.seen]  # (n_obs, 3, J)
-        return D[:, :, 0], D[:, :, 1:]
+        return D[:, :, 0], D[:, :, 1:], X[0, :r, 0], X[0, :r, 1:]
 
     def _rigid_design(self) -> np.ndarray:
         """Per observation (n_obs, 3, 3) or (n_obs, 3, 6) with ``rotation``: displacement per translation (and
@@ -247,7 +268,7 @@ class UnknownInputProblem(FitProblem):
     def solve(self, theta):
         """The profiled ``(alpha (2H,), rigid (K, 3) translation (K, 6 with rotation vector), offsets (P, 3),
         e (n_obs, 3) residual before whitening, reduced normal matrix)`` at theta."""
-        d0, J = self._design(np.asarray(theta, float))
+        d0, J, q0, Q0 = self._design(np.asarray(theta, float))
         e = self.y - d0
         W = self._R_inv
         K, P, nA = self.frames, self.n_points, J.shape[2]
@@ -295,6 +316,11 @@ class UnknownInputProblem(FitProblem):
         alpha = beta[nt:]
         m = np.einsum("pij,pj->pi", self._G_inv, b - np.einsum("pib,b->pi", B, beta))
         res = e - np.einsum("nia,na->ni", Gr, rigid[fi]) - np.einsum("nia,a->ni", J, alpha) - m[pi]
+        if self.centring is not None:
+            # the gauge of the uncentred problem's offsets: tau_0 = the model's mean displacement at the first frame
+            shift = self.centring @ (q0 + Q0 @ alpha)
+            rigid[:, :3] += shift
+            m = m - shift
         return alpha, rigid, m, res, S
 
     def residuals(self, theta) -> np.ndarray:
@@ -305,6 +331,39 @@ class UnknownInputProblem(FitProblem):
         """The profiled offsets (P_used, 3) (the model-error weighting of :meth:`FitProblem.offsets` is not
         applied: the rigid motion and the input are profiled with the measurement weights)."""
         return self.solve(theta)[2]
+
+    def field_frame(self) -> tuple:
+        """``(centre (3,), axes (2, 3), scale)`` of a displacement field over the fitted points (their median
+        positions): their mean, the two principal directions of their spread (along the observed surface) and the
+        RMS distance from the mean within them (m)."""
+        X = self._lever[np.isfinite(self._lever).all(axis=1)]
+        centre = X.mean(axis=0)
+        axes = np.linalg.svd(X - centre, full_matrices=False)[2][:2]
+        scale = float(np.sqrt(np.mean(np.sum(((X - centre) @ axes.T) ** 2, axis=1))))
+        return centre, axes, scale if scale > 0 else 1.0
+
+    def residual_field(self, theta, degree: int, frame) -> np.ndarray:
+        """(K, 3 (n - 1)): per fitted frame, the smooth displacement field that the profiled residual (after the
+        model, the translation and the offsets at theta) holds beyond a translation: the coefficients
+        ``[c_2 (3) | c_3 (3) | ...]`` of the non-constant monomials of :func:`tracker.unknown_input.field_basis`
+        (degree ``degree``, in ``frame`` of :meth:`field_frame`), fitted with the constant by least squares to the
+        frame's residuals at the points' positions. A frame with fewer points than twice the monomials repeats the
+        previous frame's field (zero before the first)."""
+        from .unknown_input import field_basis
+
+        res = self.solve(np.asarray(theta, float))[3]
+        centre, axes, scale = frame
+        phi = field_basis(self._lever[self._point_idx], degree, centre, axes, scale)   # (n_obs, n)
+        n = phi.shape[1]
+        out = np.zeros((self.frames, 3 * (n - 1)))
+        for k in range(self.frames):
+            rows = self._frame_idx == k
+            if rows.sum() < 2 * n:
+                out[k] = out[k - 1] if k else 0.0
+                continue
+            c = np.linalg.lstsq(phi[rows], res[rows], rcond=None)[0]          # (n, 3)
+            out[k] = c[1:].reshape(-1)
+        return out
 
     def input_solution(self, theta, reduced_chi2: float = 1.0):
         """``(alpha, alpha_std, tau)`` at theta: the amplitudes' standard deviations from the reduced normal
@@ -704,6 +763,24 @@ def _subset_points(meas: MeasurementSet, idx) -> MeasurementSet:
         meta=meta)
 
 
+def _observed_translation(model, meas, keep, offsets, theta, kw) -> np.ndarray:
+    """(K, 3) the rigid translation per frame that the points ``keep`` with known offsets show under the model
+    (its inputs and centring in ``kw``): per frame the generalised least-squares mean of their measured position
+    minus offset minus model displacement; ``kw['translation']`` (the block's expectation) where none is seen."""
+    win = FitProblem(model, _subset_points(meas, keep), None, inputs=kw["inputs"],
+                     translation=np.zeros((meas.n_frames, 3)), centring=kw.get("centring"))
+    r = win.y - np.asarray(offsets)[win.keep][win._point_idx] - win.displacements(np.asarray(theta, float))[win.seen]
+    K = meas.n_frames
+    Wr = np.zeros((K, 3))
+    W = np.zeros((K, 3, 3))
+    np.add.at(Wr, win._frame_idx, np.einsum("nij,nj->ni", win._R_inv, r))
+    np.add.at(W, win._frame_idx, win._R_inv)
+    out = np.array(kw["translation"], float)
+    seen = np.bincount(win._frame_idx, minlength=K) > 0
+    out[seen] = np.linalg.solve(W[seen], Wr[seen][..., None])[..., 0]
+    return out
+
+
 def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None,
                           relative_model_error: float = REFERENCE_MODEL_ERROR, input_block=None) -> MeasurementSet:
     """The measurement set with each point's ``reference`` replaced by its undeformed position at ``theta``.
@@ -727,7 +804,8 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
 
     With an ``input_block`` (a recording without pressure, :mod:`tracker.unknown_input`) the window's offsets are
     those of :class:`UnknownInputProblem` (input and rigid motion profiled, no model-error weighting) and the late
-    points' those under the block's mean input and rigid motion continued over the sequence.
+    points' those under the block's mean input continued over the sequence and the rigid translation that the
+    window's points show in each frame (:func:`_observed_translation`), not one extrapolated from the window.
     """
     import dataclasses
 
@@ -738,9 +816,9 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
         from .unknown_input import known_inputs
 
         prob = UnknownInputProblem(model, meas, input_block.frequency_hz, input_block.harmonics, input_block.column,
-                                   frames)
+                                   frames, centred=input_block.centred)
         late_kw = {"inputs": known_inputs(meas, model, input_block) + input_block.mean_inputs(meas.n_frames),
-                   "translation": input_block.mean_translation(meas.n_frames)}
+                   "translation": input_block.mean_translation_after(meas.n_frames), "centring": prob.centring}
     keep = prob.keep
     offsets = prob.offsets(np.asarray(theta, float), relative_model_error)
     late = np.zeros(0, np.int64)
@@ -750,6 +828,8 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
         candidates = candidates[seen]
         if candidates.size:
             sub = _subset_points(meas, candidates)
+            if late_kw:
+                late_kw["translation"] = _observed_translation(model, meas, keep, offsets, theta, late_kw)
             late_prob = FitProblem(model, sub, None, **late_kw)
             late = candidates[late_prob.keep]
             late_off = late_prob.offsets(np.asarray(theta, float), relative_model_error)

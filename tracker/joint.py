@@ -541,7 +541,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     if references == "estimate":
         block = reference_block(model, model.config.theta if theta0 is None else theta0, u_ref)
         obs = augment_observation(obs, block)
-    H = obs.H if input_block is None else extend_observation(obs.H, pts.keep.size, input_block)
+    H = obs.H if input_block is None else extend_observation(obs.H, pts.keep.size, input_block, obs.reference)
     prior = joint_prior(model, u_start, theta0, prior_std, block, dt, input_block, rate)
     space = prior.space
     M = space.dim
@@ -553,6 +553,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
             "references": references, "reference_states": 0 if block is None else block.size,
             "input_states": 0 if input_block is None else input_block.size,
             "rigid_ar_order": None if input_block is None else input_block.ar_order,
+            "field_degree": None if input_block is None else input_block.field_degree,
             "random_walk_std_phi": np.sqrt(np.diag(prior.Q_n)).tolist(),
             "held_parameters": [n for n in model.config.parameter_space().estimated if n not in space.estimated]}
     for name, p in zip(filt.sampled_rate_names, filt.rates):

@@ -187,12 +187,13 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
         B1 = np.vstack([B1, np.zeros((input_block.size, B1.shape[1]))])
         Q = extend_noise(Q, input_block)
         mean0, cov0 = extend_prior(mean0, cov0, input_block)
-        H = extend_observation(H, pts.keep.size, input_block)
+        H = extend_observation(H, pts.keep.size, input_block, obs.reference)
     kf = KalmanFilter(theta, A, B0, B1, Q)
     meta = {"dropped_points": pts.dropped.tolist(), "joseph": joseph, "dt": dt, "references": references,
             "reference_states": 0 if block is None else block.size,
             "input_states": 0 if input_block is None else input_block.size,
-            "rigid_ar_order": None if input_block is None else input_block.ar_order}
+            "rigid_ar_order": None if input_block is None else input_block.ar_order,
+            "field_degree": None if input_block is None else input_block.field_degree}
     adapt = None
     if adaptation is not None:
         from .adaptive import NoiseAdaptation

@@ -12,7 +12,9 @@ estimated instead:
 * a **rigid motion** of the observed surface (respiration, the heart's bulk motion in the view): a per-frame
   translation in the fit; in the estimators a random-walk translation plus ``H`` harmonics of ``f`` per axis, and
   when the fit's translation shows a breathing rhythm (:func:`estimate_respiration`: at least two breaths in the
-  fitted frames) ``R`` harmonics of the respiration rate ``f_r`` per axis.
+  fitted frames) ``R`` harmonics of the respiration rate ``f_r`` per axis; with ``heartcv fit``'s default the
+  translation is the centre of a smooth (affine) displacement field along the observed surface, whose other
+  coefficients the fit takes from its residual (``InputBlock.field_degree``).
 
 In the estimators the amplitudes and the rigid motion are states of the linear block (:class:`InputBlock`): each
 harmonic is a 2-D rotation ``z_h' = R(2 pi h f dt) z_h + w`` whose first component is that harmonic's value, so
@@ -37,7 +39,8 @@ __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", 
            "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs", "RatePrior",
            "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN", "Respiration", "estimate_respiration", "respiration_prior",
            "RESPIRATION_BAND_HZ", "RESPIRATION_HARMONICS", "MIN_BREATHS", "RESPIRATION_MIN_EXPLAINED",
-           "fit_increment_ar", "select_increment_ar", "MAX_AR_ORDER"]
+           "fit_increment_ar", "select_increment_ar", "MAX_AR_ORDER", "field_powers", "field_basis",
+           "select_field_ar", "FIELD_RIDGES", "MAX_FIELD_DEGREE", "FIELD_DEGREE"]
 
 HARMONICS = 6
 """Harmonics of the heart rate in the estimated input and in the rigid motion. An LV pressure pulse needs them: on
@@ -390,7 +393,7 @@ def _rotation(angle):
 @dataclass(frozen=True)
 class InputBlock:
     """The estimated input and rigid motion as states of the linear block, appended after the kinematic (and
-    reference) states: ``e = [z_p (2H) | tau (3) | z_r (3 x 2H_r) | z_b (3 x 2R) | l (3 p)]``.
+    reference) states: ``e = [z_p (2H) | tau (D) | z_r (3 x 2H_r) | z_b (3 x 2R) | l (D p)]``.
 
     ``z_p``: the input's harmonics (oscillator h: ``[c_h, s_h]``, value ``c_h``), driving model input ``column``;
     ``tau``: the translation not periodic, a random walk, or with ``rigid_ar`` (p > 0) a vector autoregression of
@@ -398,6 +401,13 @@ class InputBlock:
     tau_(k-p)]`` the previous translations; ``z_r``: the heartbeat's ``H_r`` harmonics of the rigid motion per axis
     (``rigid_harmonics``, default H); ``z_b``: the respiration's (``R = 0`` when no breathing rhythm was seen). The
     points move rigidly by ``G e = tau + sum_h c_h^axis + sum_r b_r^axis``.
+
+    With ``field_degree`` d > 0, ``tau`` is a smooth displacement field instead of a translation: ``D = 3 n`` with
+    ``n = (d + 1)(d + 2) / 2`` monomials ``u^i v^j`` (i + j <= d, the constant first) of a point's coordinates along
+    the observed surface, ``(u, v) = field_axes (X - field_centre) / field_scale``; ``tau = [c_1 (3) | c_2 (3) |
+    ...]`` moves point p by ``sum_j phi_j(u_p, v_p) c_j`` (:meth:`motion_maps`), its first 3 entries the
+    translation of the patch centre. The field's increments follow the same vector autoregression (``rigid_ar``
+    (p, D, D)). d = 0 is the rigid translation.
 
     Attributes
     ----------
@@ -414,8 +424,17 @@ class InputBlock:
     respiration_hz : float      respiration rate (0 with ``respiration_harmonics`` 0)
     respiration_harmonics : int R
     rigid_harmonics : int       H_r, the heartbeat's harmonics in the rigid motion (None: H)
-    rigid_ar : ndarray (p, 3, 3) the autoregression of the translation's increments, ``d_(k+1) = sum_i A_i d_(k+1-i)``
+    rigid_ar : ndarray (p, D, D) the autoregression of the translation's increments, ``d_(k+1) = sum_i A_i d_(k+1-i)``
                                 (None or p = 0: a random walk)
+    centred : bool              the model's displacements centred over the points (their mean displacement map
+                                subtracted from each; :class:`tracker.fit.UnknownInputProblem` ``centred``): ``tau``
+                                is then the tracks' mean motion, not that minus the model's mean bulge
+    end_level : (D,), optional  ``tau`` without its harmonics at the last fitted frame (None: unknown, files written
+                                before it)
+    field_degree : int          d, the degree of the displacement field ``tau`` (0: a translation)
+    field_centre : (3,)         the field's origin in the patch frame (m)
+    field_axes : (2, 3)         the field's in-plane directions (orthonormal rows; None: the patch's x and y)
+    field_scale : float         the field's length unit (m)
     """
 
     frequency_hz: float
@@ -431,13 +450,39 @@ class InputBlock:
     respiration_harmonics: int = 0
     rigid_harmonics: int | None = None
     rigid_ar: np.ndarray | None = None
+    field_degree: int = 0
+    field_centre: tuple = (0.0, 0.0, 0.0)
+    field_scale: float = 1.0
+    field_axes: tuple | None = None
+    centred: bool = False
+    end_level: tuple | None = None
 
     def __post_init__(self):
         if self.rigid_harmonics is None:
             object.__setattr__(self, "rigid_harmonics", int(self.harmonics))
-        ar = np.zeros((0, 3, 3)) if self.rigid_ar is None else np.asarray(self.rigid_ar, float)
-        if ar.ndim != 3 or ar.shape[1:] != (3, 3) or not np.isfinite(ar).all():
-            raise ValueError(f"input block: rigid_ar must be finite (p, 3, 3), got shape {ar.shape}")
+        if not 0 <= int(self.field_degree) <= MAX_FIELD_DEGREE:
+            raise ValueError(f"input block: field_degree in 0..{MAX_FIELD_DEGREE} expected, got {self.field_degree}")
+        centre = np.asarray(self.field_centre, float).reshape(-1)
+        axes = np.eye(3)[:2] if self.field_axes is None else np.asarray(self.field_axes, float)
+        if centre.size != 3 or not np.isfinite(centre).all() or not (np.isfinite(self.field_scale)
+                                                                     and self.field_scale > 0):
+            raise ValueError("input block: field_centre (3 finite values) and a positive field_scale expected")
+        if axes.shape != (2, 3) or not np.isfinite(axes).all() or not np.allclose(axes @ axes.T, np.eye(2),
+                                                                                 atol=1e-6):
+            raise ValueError(f"input block: field_axes must be 2 orthonormal rows of 3, got {axes.tolist()}")
+        object.__setattr__(self, "field_degree", int(self.field_degree))
+        object.__setattr__(self, "field_centre", tuple(float(v) for v in centre))
+        object.__setattr__(self, "field_axes", tuple(tuple(float(v) for v in row) for row in axes))
+        object.__setattr__(self, "field_scale", float(self.field_scale))
+        if self.end_level is not None:
+            end = np.asarray(self.end_level, float).reshape(-1)
+            if end.size != self.motion_dim or not np.isfinite(end).all():
+                raise ValueError(f"input block: end_level must hold {self.motion_dim} finite values, got {end.size}")
+            object.__setattr__(self, "end_level", tuple(float(v) for v in end))
+        D = self.motion_dim
+        ar = np.zeros((0, D, D)) if self.rigid_ar is None else np.asarray(self.rigid_ar, float)
+        if ar.ndim != 3 or ar.shape[1:] != (D, D) or not np.isfinite(ar).all():
+            raise ValueError(f"input block: rigid_ar must be finite (p, {D}, {D}), got shape {ar.shape}")
         if not 0 <= int(self.rigid_harmonics) <= int(self.harmonics):
             raise ValueError(f"input block: rigid_harmonics in 0..{self.harmonics} expected, got "
                              f"{self.rigid_harmonics}")
@@ -459,27 +504,34 @@ class InputBlock:
         return 0 if self.rigid_ar is None else int(np.shape(self.rigid_ar)[0])
 
     @property
+    def motion_dim(self) -> int:
+        """D: the states of ``tau`` (3 per monomial of the displacement field; 3 for a translation)."""
+        return 3 * len(field_powers(self.field_degree))
+
+    @property
     def size(self) -> int:
-        return 2 * self.harmonics + 3 + 6 * self.rigid_harmonics + 6 * self.respiration_harmonics + 3 * self.ar_order
+        D = self.motion_dim
+        return 2 * self.harmonics + D + 6 * self.rigid_harmonics + 6 * self.respiration_harmonics + D * self.ar_order
 
     @property
     def slices(self):
         """``(z_p, tau, z_r, z_b)`` slices of the block (the lags :attr:`lags` after them)."""
-        H, Hr, R = self.harmonics, self.rigid_harmonics, self.respiration_harmonics
-        zb = 2 * H + 3 + 6 * Hr
-        return slice(0, 2 * H), slice(2 * H, 2 * H + 3), slice(2 * H + 3, zb), slice(zb, zb + 6 * R)
+        H, Hr, R, D = self.harmonics, self.rigid_harmonics, self.respiration_harmonics, self.motion_dim
+        zb = 2 * H + D + 6 * Hr
+        return slice(0, 2 * H), slice(2 * H, 2 * H + D), slice(2 * H + D, zb), slice(zb, zb + 6 * R)
 
     @property
     def translation_states(self) -> tuple:
-        """Where ``tau`` and each previous translation ``l_j`` start: a constant shift of the translation moves all
-        of them alike (its increments unchanged)."""
-        return (self.slices[1].start,) + tuple(self.lags.start + 3 * j for j in range(self.ar_order))
+        """Where ``tau``'s translation (its first 3 entries) and each previous one's in ``l_j`` start: a constant
+        shift of the translation moves all of them alike (its increments unchanged)."""
+        D = self.motion_dim
+        return (self.slices[1].start,) + tuple(self.lags.start + D * j for j in range(self.ar_order))
 
     @property
     def lags(self) -> slice:
-        """The previous translations ``l`` (3 p)."""
+        """The previous translations (fields) ``l`` (D p)."""
         start = self.slices[3].stop
-        return slice(start, start + 3 * self.ar_order)
+        return slice(start, start + self.motion_dim * self.ar_order)
 
     def without_input(self) -> InputBlock:
         """The same block with the input's oscillators ``z_p`` pinned at zero (prior mean 0, prior and random walk
@@ -499,10 +551,10 @@ class InputBlock:
     def _oscillators(self):
         """``(start, frequency, harmonic)`` of every 2-D oscillator."""
         H, Hr, R = self.harmonics, self.rigid_harmonics, self.respiration_harmonics
-        zb = self.slices[3].start
+        zr, zb = self.slices[2].start, self.slices[3].start
         out = [(2 * (h - 1), self.frequency_hz, h) for h in range(1, H + 1)]
         for a in range(3):
-            out += [(2 * H + 3 + 2 * Hr * a + 2 * (h - 1), self.frequency_hz, h) for h in range(1, Hr + 1)]
+            out += [(zr + 2 * Hr * a + 2 * (h - 1), self.frequency_hz, h) for h in range(1, Hr + 1)]
             out += [(zb + 2 * R * a + 2 * (r - 1), self.respiration_hz, r) for r in range(1, R + 1)]
         return out
 
@@ -513,18 +565,18 @@ class InputBlock:
         T = np.eye(self.size)
         for i, f, h in self._oscillators():
             T[i:i + 2, i:i + 2] = _rotation(2 * np.pi * h * f * self.dt)
-        p = self.ar_order
+        p, D = self.ar_order, self.motion_dim
         if p:
             tau = self.slices[1].start
-            col = [tau] + [self.lags.start + 3 * j for j in range(p)]     # tau, l_1 .. l_p
+            col = [tau] + [self.lags.start + D * j for j in range(p)]     # tau, l_1 .. l_p
             for i in range(1, p + 1):
                 A = self.rigid_ar[i - 1]
-                T[tau:tau + 3, col[i - 1]:col[i - 1] + 3] += A
-                T[tau:tau + 3, col[i]:col[i] + 3] -= A
+                T[tau:tau + D, col[i - 1]:col[i - 1] + D] += A
+                T[tau:tau + D, col[i]:col[i] + D] -= A
             for j in range(p):
-                r = self.lags.start + 3 * j
-                T[r:r + 3, :] = 0.0
-                T[r:r + 3, col[j]:col[j] + 3] = np.eye(3)
+                r = self.lags.start + D * j
+                T[r:r + D, :] = 0.0
+                T[r:r + D, col[j]:col[j] + D] = np.eye(D)
         return T
 
     def input_maps(self):
@@ -535,14 +587,27 @@ class InputBlock:
         return P0, P0 @ self.transition()
 
     def translation_map(self) -> np.ndarray:
-        """G (3, m): the rigid translation of every point."""
+        """G (3, m): the rigid translation of every point (with a displacement field, that of the field's
+        centre)."""
         H, Hr, R = self.harmonics, self.rigid_harmonics, self.respiration_harmonics
-        zb = self.slices[3].start
+        zr, zb = self.slices[2].start, self.slices[3].start
         G = np.zeros((3, self.size))
         G[:, 2 * H:2 * H + 3] = np.eye(3)
         for a in range(3):
-            G[a, 2 * H + 3 + 2 * Hr * a:2 * H + 3 + 2 * Hr * (a + 1):2] = 1.0
+            G[a, zr + 2 * Hr * a:zr + 2 * Hr * (a + 1):2] = 1.0
             G[a, zb + 2 * R * a:zb + 2 * R * (a + 1):2] = 1.0
+        return G
+
+    def motion_maps(self, points) -> np.ndarray:
+        """G_p (P, 3, m): the motion of points at patch-frame positions ``points`` (P, 3): the translation map
+        with ``tau`` replaced by the displacement field's monomials at each point (every point alike for d = 0)."""
+        X = np.asarray(points, float).reshape(-1, 3)
+        G = np.repeat(self.translation_map()[None], X.shape[0], axis=0)
+        if self.field_degree:
+            phi = field_basis(X, self.field_degree, self.field_centre, self.field_axes, self.field_scale)  # (P, n)
+            tau = self.slices[1].start
+            for j in range(1, phi.shape[1]):
+                G[:, :, tau + 3 * j:tau + 3 * j + 3] = phi[:, j, None, None] * np.eye(3)
         return G
 
     def coupling(self, B0, B1) -> np.ndarray:
@@ -570,12 +635,29 @@ class InputBlock:
         """The rigid translation (K, 3) of the block's prior mean propagated without noise."""
         return self._propagated(self.translation_map(), K)
 
+    def mean_translation_after(self, K: int) -> np.ndarray:
+        """The rigid translation (K, 3) expected after the fitted frames: as :meth:`mean_translation`, with the
+        translation's non-periodic part (and its lags) where the fit left it at its last frame instead of its first
+        (a random walk's forecast; the harmonics unchanged). Without ``end_level`` :meth:`mean_translation`."""
+        if self.end_level is None:
+            return self.mean_translation(K)
+        mean0 = self.mean0.copy()
+        end = np.asarray(self.end_level)
+        mean0[self.slices[1]] = end
+        if self.ar_order:
+            mean0[self.lags] = np.tile(end, self.ar_order)
+        return replace(self, mean0=mean0)._propagated(self.translation_map(), K)
+
     def to_dict(self) -> dict:
         return {"kind": "harmonic", "frequency_hz": float(self.frequency_hz), "harmonics": int(self.harmonics),
                 "dt": float(self.dt), "n_u": int(self.n_u), "column": int(self.column),
                 "input_scale": float(self.input_scale), "respiration_hz": float(self.respiration_hz),
                 "respiration_harmonics": int(self.respiration_harmonics),
                 "rigid_harmonics": int(self.rigid_harmonics), "rigid_ar": self.rigid_ar.tolist(),
+                "field_degree": int(self.field_degree), "field_centre_m": list(self.field_centre),
+                "field_axes": [list(r) for r in self.field_axes], "field_scale_m": float(self.field_scale),
+                "centred": bool(self.centred),
+                "end_level": None if self.end_level is None else list(self.end_level),
                 "mean0": self.mean0.tolist(),
                 "std0": self.std0.tolist(), "noise_std": self.noise_std.tolist()}
 
@@ -586,12 +668,21 @@ class InputBlock:
         if not isinstance(d, dict) or d.get("kind") != "harmonic":
             raise ValueError("kind: 'harmonic' expected")
         try:
+            fd = int(d.get("field_degree", 0))
+            if not 0 <= fd <= MAX_FIELD_DEGREE:
+                raise ValueError(f"field_degree: 0..{MAX_FIELD_DEGREE} expected, got {fd}")
+            D = 3 * len(field_powers(fd))
             blk = cls(float(d["frequency_hz"]), int(d["harmonics"]), float(d["dt"]), int(d["n_u"]), int(d["column"]),
                       np.asarray(d["mean0"], float), np.asarray(d["std0"], float),
                       np.asarray(d["noise_std"], float), float(d.get("input_scale", 1.0)),
                       float(d.get("respiration_hz", 0.0)), int(d.get("respiration_harmonics", 0)),
                       None if d.get("rigid_harmonics") is None else int(d["rigid_harmonics"]),
-                      None if d.get("rigid_ar") is None else np.asarray(d["rigid_ar"], float).reshape(-1, 3, 3))
+                      None if d.get("rigid_ar") is None else np.asarray(d["rigid_ar"], float).reshape(-1, D, D),
+                      fd, tuple(np.asarray(d.get("field_centre_m", (0.0, 0.0, 0.0)), float).reshape(-1)),
+                      float(d.get("field_scale_m", 1.0)),
+                      None if d.get("field_axes") is None else np.asarray(d["field_axes"], float),
+                      _flag(d.get("centred", False), "centred"),
+                      None if d.get("end_level") is None else np.asarray(d["end_level"], float))
         except KeyError as exc:
             raise ValueError(f"{exc.args[0]}: missing") from None
         except (TypeError, ValueError) as exc:
@@ -604,6 +695,12 @@ class InputBlock:
         return blk
 
 
+def _flag(value, name: str) -> bool:
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}: true or false expected, got {value!r}")
+    return value
+
+
 def _oscillator_prior(coef, drift, dt):
     """Prior mean, standard deviation and walk per frame of oscillators fitted with amplitudes ``coef``
     ([a_1, b_1, ...]): the amplitudes; ``drift`` of each harmonic's amplitude; ``drift |(a, b)| sqrt(dt)``."""
@@ -614,7 +711,8 @@ def _oscillator_prior(coef, drift, dt):
 def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_std, translation, times,
                          drift: float = DRIFT_PER_SQRT_S, respiration_hz: float | None = None,
                          respiration_harmonics: int = RESPIRATION_HARMONICS, rigid_harmonics: int | None = None,
-                         rigid_ar_order: int | None = None) -> InputBlock:
+                         rigid_ar_order: int | None = None, field=None, field_degree: int = 0,
+                         field_frame=None, centred: bool = False) -> InputBlock:
     """The estimators' block from a fit: input amplitudes ``alpha`` (2H,) [a_1, b_1, ...] with their standard
     deviations, the fit's per-frame translation (K_fit, 3) at ``times`` (the sequence's first frames), and the
     respiration rate when one was seen (:func:`estimate_respiration`; None: no respiration oscillators).
@@ -623,11 +721,22 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     the fit's plus ``drift`` of the amplitude; its random walk per frame ``drift |(a_h, b_h)| sqrt(dt)``. The rigid
     motion: the heartbeat's harmonics (and the respiration's) fitted jointly to the translation, likewise; the
     random-walk translation starts where the translation minus its harmonics starts, with standard deviation the
-    residual's, and moves by the residual's increments (their standard deviation per frame). ``rigid_harmonics``
+    residual's, and moves by the residual's increments (their standard deviation per frame); where it was at the
+    last fitted frame is kept too (``end_level``, for :meth:`InputBlock.mean_translation_after`). ``rigid_harmonics``
     (default ``harmonics``) of the heartbeat in the rigid motion; with ``rigid_ar_order`` p > 0 the increments
     follow the vector autoregression fitted to them by least squares (:func:`fit_increment_ar`; None, the
     default: the order in 0 .. :data:`MAX_AR_ORDER` by :func:`select_increment_ar`, 0 the plain random walk), the
-    random walk its residual, and the previous translations start where the translation does."""
+    random walk its residual, and the previous translations start where the translation does.
+
+    With ``field_degree`` d > 0, ``field`` (K_fit, D - 3) holds the fit's residual displacement field per frame
+    beyond the translation (the non-constant monomials' coefficients, :meth:`tracker.fit.UnknownInputProblem.
+    residual_field`, in ``field_frame`` = ``(centre (3,), axes (2, 3), scale)`` of :meth:`tracker.fit.
+    UnknownInputProblem.field_frame`): ``tau`` is the whole field, its non-constant part
+    starting at the first frame's field with the field's standard deviation, and the vector autoregression of its
+    increments is fitted to all D coordinates, the order (None: 0 .. :data:`MAX_AR_ORDER`) and ridge by
+    :func:`select_field_ar` (with D^2 p coefficients the information criterion of a translation does not carry
+    over). ``centred``: the fit centred the model's displacements (``translation`` is then in that gauge), and the
+    estimators do too."""
     H = int(harmonics)
     Hr = H if rigid_harmonics is None else int(rigid_harmonics)
     R = int(respiration_harmonics) if respiration_hz else 0
@@ -643,9 +752,18 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     X = np.hstack(X)
     coef, *_ = np.linalg.lstsq(X, tr, rcond=None)
     resid = tr - X @ coef
+    d = int(field_degree)
+    D = 3 * len(field_powers(d))
+    if d:
+        fld = np.asarray(field, float).reshape(tr.shape[0], D - 3)
+        resid = np.hstack([resid, fld - fld.mean(axis=0)])
     inc = np.diff(resid, axis=0)
-    p = select_increment_ar(inc) if rigid_ar_order is None else int(rigid_ar_order)
-    m = 2 * H + 3 + 6 * Hr + 6 * R + 3 * p
+    ridge = 1e-6
+    if d:
+        p, ridge = select_field_ar(inc, None if rigid_ar_order is None else int(rigid_ar_order))
+    else:
+        p = select_increment_ar(inc) if rigid_ar_order is None else int(rigid_ar_order)
+    m = 2 * H + D + 6 * Hr + 6 * R + D * p
     mean0, std0, q = np.zeros(m), np.zeros(m), np.zeros(m)
     scale = float(np.sqrt(np.sum(alpha ** 2)))
     scale = scale if scale > 0 and np.isfinite(scale) else 1.0
@@ -653,45 +771,117 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     mean0[:2 * H] = alpha / scale
     std0[:2 * H] = np.hypot(alpha_std / scale, drift * amp_p) + 1e-9
     q[:2 * H] = drift * amp_p * math.sqrt(dt) + 1e-12
-    rw_sd = np.std(inc, axis=0) if resid.shape[0] > 2 else np.full(3, 1e-4)
+    rw_sd = np.std(inc, axis=0) if resid.shape[0] > 2 else np.full(D, 1e-4)
     ar = None
     if p:
-        ar, rw_sd = fit_increment_ar(inc, p)
-    mean0[2 * H:2 * H + 3] = coef[0] + resid[0]
-    std0[2 * H:2 * H + 3] = np.std(resid, axis=0) + 1e-9
-    q[2 * H:2 * H + 3] = rw_sd + 1e-9
-    zb = 2 * H + 3 + 6 * Hr
+        ar, rw_sd = fit_increment_ar(inc, p, ridge)
+    tau = slice(2 * H, 2 * H + D)
+    level = np.concatenate([coef[0], fld.mean(axis=0)]) if d else coef[0]
+    mean0[tau] = level + resid[0]                       # the first frame's translation (and field)
+    end = level + resid[-1]                             # the last fitted frame's: where the walk was left
+    std0[tau] = np.std(resid, axis=0) + 1e-9
+    q[tau] = rw_sd + 1e-9
+    zr = 2 * H + D
+    zb = zr + 6 * Hr
     for a in range(3):
-        s = slice(2 * H + 3 + 2 * Hr * a, 2 * H + 3 + 2 * Hr * (a + 1))
+        s = slice(zr + 2 * Hr * a, zr + 2 * Hr * (a + 1))
         mean0[s], std0[s], q[s] = _oscillator_prior(coef[1:1 + 2 * Hr, a], drift, dt)
         if R:
             s = slice(zb + 2 * R * a, zb + 2 * R * (a + 1))
             mean0[s], std0[s], q[s] = _oscillator_prior(coef[1 + 2 * Hr:, a], drift, dt)
     lags = slice(zb + 6 * R, m)
-    mean0[lags] = np.tile(mean0[2 * H:2 * H + 3], p)
-    std0[lags] = np.tile(std0[2 * H:2 * H + 3], p)
+    mean0[lags] = np.tile(mean0[tau], p)
+    std0[lags] = np.tile(std0[tau], p)
     q[lags] = 1e-12
     return InputBlock(float(frequency_hz), H, float(dt), int(n_u), int(column), mean0, std0, q, scale,
-                      float(respiration_hz) if R else 0.0, R, Hr, ar)
+                      float(respiration_hz) if R else 0.0, R, Hr, ar, d,
+                      *((tuple(field_frame[0]), float(field_frame[2]), field_frame[1]) if d
+                        else ((0.0, 0.0, 0.0), 1.0, None)), bool(centred), tuple(float(v) for v in end))
 
 
 MAX_AR_ORDER = 4
 """Largest order of the translation's increment autoregression that :func:`select_increment_ar` considers."""
 
+MAX_FIELD_DEGREE = 2
+"""Largest degree of the displacement field in the rigid motion's place (:class:`InputBlock`)."""
+
+FIELD_DEGREE = 1
+"""The degree of the rigid motion's displacement field that ``heartcv fit`` gives an estimated input by default: an
+affine field, the lowest degree that holds a small rotation of the observed surface (its antisymmetric linear part)
+besides the translation, and the surface's in-plane stretch and shear and its tilt (docs/model.md 17)."""
+
+FIELD_RIDGES = (1e-3, 1e-2, 1e-1, 1.0)
+"""Relative ridge penalties :func:`select_field_ar` chooses among."""
+
+VALIDATION_FRACTION = 0.3
+"""Share of the fitted frames' increments (the last ones) that :func:`select_field_ar` predicts to choose."""
+
+
+def field_powers(degree: int) -> list:
+    """The monomials ``u^i v^j`` of total degree <= ``degree`` as ``(i, j)``, by degree, the constant first."""
+    return [(i, t - i) for t in range(int(degree) + 1) for i in range(t, -1, -1)]
+
+
+def field_basis(points, degree: int, centre=(0.0, 0.0, 0.0), axes=None, scale: float = 1.0) -> np.ndarray:
+    """(P, n) the monomials of :func:`field_powers` at ``(u, v) = axes (X - centre) / scale`` of ``points`` (P, 3)
+    (``axes`` (2, 3); None: x and y)."""
+    X = np.asarray(points, float)
+    A = np.eye(3)[:2] if axes is None else np.asarray(axes, float)
+    uv = (X - np.asarray(centre, float)) @ A.T / float(scale)
+    return np.stack([uv[:, 0] ** i * uv[:, 1] ** j for i, j in field_powers(degree)], axis=1)
+
 
 def _lagged(d, p: int, start: int) -> np.ndarray:
-    """Rows k = start .. K-1 of ``[d_(k-1), ..., d_(k-p)]`` (K - start, 3 p)."""
+    """Rows k = start .. K-1 of ``[d_(k-1), ..., d_(k-p)]`` (K - start, D p)."""
     return np.hstack([d[start - i:d.shape[0] - i] for i in range(1, p + 1)])
+
+
+def select_field_ar(increments, order: int | None = None, max_order: int = MAX_AR_ORDER,
+                    ridges=FIELD_RIDGES) -> tuple:
+    """The order p (given, or in 0 .. ``max_order``) and the relative ridge of :func:`fit_increment_ar` for a
+    displacement field's increments (K, D), by how well they predict: each candidate is fitted to the first
+    ``1 - VALIDATION_FRACTION`` of the increments and predicts the rest one step ahead; the least sum of squared
+    errors wins (p = 0, the random walk, predicts no increment). Returns ``(p, ridge)``."""
+    d = np.asarray(increments, float)
+    if d.ndim != 2:
+        raise ValueError(f"increments: (K, D) expected, got {d.shape}")
+    n_val = int(round(VALIDATION_FRACTION * d.shape[0]))
+    orders = [int(order)] if order is not None else list(range(0, int(max_order) + 1))
+    best, best_err = (0, float(ridges[0])), float(np.sum(d[d.shape[0] - n_val:] ** 2))
+    if order is not None and int(order) == 0:
+        return best
+    train_end = d.shape[0] - n_val
+    for p in orders:
+        if p == 0 or train_end < p + 3 or n_val < 1:
+            continue
+        for ridge in ridges:
+            W = _ar_solve(d[:train_end], p, float(ridge))
+            Z = _lagged(d, p, train_end)
+            err = float(np.sum((d[train_end:] - Z @ W) ** 2))
+            if err < best_err or (order is not None and best[0] == 0):
+                best, best_err = (p, float(ridge)), err
+    return best
+
+
+def _ar_solve(d, p: int, ridge: float) -> np.ndarray:
+    """W (D p, D) of ``d_k ~ [d_(k-1) .. d_(k-p)] W`` by ridge regression (``ridge`` times the normal matrix's mean
+    diagonal)."""
+    Z = _lagged(d, p, p)
+    Y = d[p:]
+    G = Z.T @ Z
+    G[np.diag_indices_from(G)] += ridge * float(np.mean(np.diag(G))) + 1e-300
+    return np.linalg.solve(G, Z.T @ Y)
 
 
 def select_increment_ar(increments, max_order: int = MAX_AR_ORDER) -> int:
     """The order p in 0 .. ``max_order`` of :func:`fit_increment_ar` with the least Bayesian information criterion
-    ``n log det(Sigma_w) + 9 p log n`` over the same rows (n = K - ``max_order``) for every order; p = 0 is the
+    ``n log det(Sigma_w) + D^2 p log n`` over the same rows (n = K - ``max_order``) for every order; p = 0 is the
     random walk (white increments, ``Sigma_w`` their second moment). Fewer frames than the largest order needs
     lower it."""
     d = np.asarray(increments, float)
-    if d.ndim != 2 or d.shape[1] != 3:
-        raise ValueError(f"increments: (K, 3) expected, got {d.shape}")
+    if d.ndim != 2:
+        raise ValueError(f"increments: (K, D) expected, got {d.shape}")
+    D = d.shape[1]
     top = min(int(max_order), max(0, (d.shape[0] - 5) // 4))
     n = d.shape[0] - top
     best, best_bic = 0, np.inf
@@ -703,35 +893,48 @@ def select_increment_ar(increments, max_order: int = MAX_AR_ORDER) -> int:
         else:
             E = Y
         sign, logdet = np.linalg.slogdet(E.T @ E / n)
-        bic = n * logdet + 9 * p * np.log(n) if sign > 0 else np.inf
+        bic = n * logdet + D * D * p * np.log(n) if sign > 0 else np.inf
         if bic < best_bic:
             best, best_bic = p, bic
     return best
 
 
 def fit_increment_ar(increments, order: int, ridge: float = 1e-6):
-    """Least-squares vector autoregression of a translation's increments (K, 3): ``d_k = sum_i A_i d_(k-i) + w_k``,
-    i = 1 .. ``order``. Returns ``(A (order, 3, 3), std of w per axis (3,))``; ``ridge`` (relative to the normal
-    matrix's mean diagonal) only guards a singular system."""
+    """Least-squares vector autoregression of a translation's (or a displacement field's) increments (K, D):
+    ``d_k = sum_i A_i d_(k-i) + w_k``, i = 1 .. ``order``. Returns ``(A (order, D, D), std of w per coordinate
+    (D,))``; ``ridge`` (relative to the normal matrix's mean diagonal) guards a singular system, or with a field's
+    many coefficients (:func:`select_field_ar`) shrinks them. A translation (D = 3) needs ``3 p + 5`` increments,
+    a field ``p + 5`` (the ridge determines the rest)."""
     d = np.asarray(increments, float)
     p = int(order)
-    if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 3 * p + 3 + 2:
-        raise ValueError(f"increments: at least {3 * p + 5} frames of (K, 3) expected for an order-{p} "
+    need = 3 * p + 5 if d.ndim == 2 and d.shape[1] == 3 else p + 5
+    if d.ndim != 2 or d.shape[1] % 3 or d.shape[0] < need:
+        raise ValueError(f"increments: at least {need} frames of (K, D) expected for an order-{p} "
                          f"autoregression, got {d.shape}")
-    Z = _lagged(d, p, p)
-    Y = d[p:]
-    G = Z.T @ Z
-    G[np.diag_indices_from(G)] += ridge * float(np.mean(np.diag(G))) + 1e-300
-    W = np.linalg.solve(G, Z.T @ Y)                                           # Y ~ Z W
-    A = np.stack([W[3 * (i - 1):3 * i].T for i in range(1, p + 1)])
-    return A, np.std(Y - Z @ W, axis=0)
+    D = d.shape[1]
+    W = _ar_solve(d, p, ridge)                                                # Y ~ Z W
+    A = np.stack([W[D * (i - 1):D * i].T for i in range(1, p + 1)])
+    return A, np.std(d[p:] - _lagged(d, p, p) @ W, axis=0)
 
 
 # -- the block in the estimators' matrices ---------------------------------------------------------------------------
 
-def extend_observation(H, n_points: int, block: InputBlock) -> np.ndarray:
-    """``[H, G; H, G; ...]``: every point moves by the block's rigid translation ``G e``."""
-    return np.hstack([np.asarray(H, float), np.tile(block.translation_map(), (int(n_points), 1))])
+def extend_observation(H, n_points: int, block: InputBlock, points=None) -> np.ndarray:
+    """``[H, G_1; H, G_2; ...]``: every point moves by the block's rigid translation ``G e``, or with a displacement
+    field (``block.field_degree`` > 0) by the field at its patch-frame position ``points`` (n_points, 3). With
+    ``block.centred`` the model's rows ``H`` are centred over the points (their mean subtracted), as the fit's."""
+    H = np.asarray(H, float)
+    if block.centred:
+        Hp = H.reshape(int(n_points), 3, -1)
+        H = (Hp - Hp.mean(axis=0)).reshape(H.shape)
+    if block.field_degree:
+        if points is None or np.shape(points) != (int(n_points), 3):
+            raise ValueError(f"points: the ({n_points}, 3) patch-frame positions of the points expected for a "
+                             "displacement field")
+        G = block.motion_maps(points).reshape(3 * int(n_points), block.size)
+    else:
+        G = np.tile(block.translation_map(), (int(n_points), 1))
+    return np.hstack([H, G])
 
 
 def extend_prior(mean, cov, block: InputBlock):

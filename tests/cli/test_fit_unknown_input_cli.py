@@ -46,7 +46,8 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     e = read_estimates(out)
     p_ar = p.estimated_input["rigid_ar_order"]
     assert 0 <= p_ar <= 4 and len(p.estimated_input["rigid_ar"]) == p_ar
-    assert e.complete and e.meta["input_states"] == 8 * 6 + 3 + 3 * p_ar
+    assert p.estimated_input["field_degree"] == 1 == e.meta["field_degree"]   # the default: an affine field
+    assert e.complete and e.meta["input_states"] == 8 * 6 + 9 + 9 * p_ar
     hold = str(tmp_path / "hold.npz")
     assert CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--estimator", "hold",
                                      "-o", hold]).exit_code == 0
@@ -94,7 +95,8 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert doc["estimators"]["kf"]["rigid_ar_order"] == p_ar
     assert doc["estimators"]["harmonic"]["rigid_ar_order"] is None
     rigid = f"an order-{p_ar} autoregression" if p_ar else "a random walk"
-    assert f"Rigid translation beyond the harmonics: {rigid}" in summary and summary.count("Rigid translation") == 1
+    assert (f"Rigid motion (a degree-1 displacement field along the surface) beyond the harmonics: {rigid}"
+            in summary and summary.count("Rigid motion") == 1)
     assert "## Within and after the fitted frames" in summary and "after it (k ≥ 90)" in summary
     assert "after it, tracks seen the frame before" in summary and "Within and after the fitted frames" in \
         (tmp_path / "rep" / "index.html").read_text()
@@ -177,7 +179,7 @@ def test_rigid_ar_is_forced_refused_with_a_recorded_input_and_at_another_frame_r
                                     "--rigid-ar", "2"])
     assert res.exit_code == 0, res.output
     entry = read_parameters(params).estimated_input
-    assert entry["rigid_ar_order"] == 2 and np.asarray(entry["rigid_ar"]).shape == (2, 3, 3)
+    assert entry["rigid_ar_order"] == 2 and np.asarray(entry["rigid_ar"]).shape == (2, 9, 9)   # a degree-1 field
     res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "n.yaml"), "--frames",
                                     "90", "--rigid-ar", "none", "--json"])
     assert res.exit_code == 0 and json.loads(res.stdout)["rigid_ar_order"] == 0
@@ -334,3 +336,47 @@ def test_without_input_is_an_ablation_of_the_estimated_input(tmp_path, blind_fil
                                     str(tmp_path / "y.npz")])
     assert res.exit_code == 2 and "holds no estimated input" in res.output, res.output
     assert not (tmp_path / "x.npz").exists() and not (tmp_path / "y.npz").exists()
+
+
+def test_field_degree_gives_a_field_block_that_track_uses(tmp_path, blind_file):
+    """fit --field-degree 1 writes a block whose rigid motion is a degree-1 field (D = 9 states per lag, the
+    in-plane axes orthonormal, the scale positive); the KF and the GE track with it (the estimate's input states
+    are the block's); the option is refused with a recorded pressure (exit 2), and a parameters file whose field
+    axes are not orthonormal is refused by track (exit 2 naming estimated_input and field_axes), writing nothing."""
+    import yaml
+
+    from heartcv.tracker.unknown_input import InputBlock
+
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90",
+                                    "--field-degree", "1", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["field_degree"] == 1
+    entry = read_parameters(params).estimated_input
+    blk = InputBlock.from_dict(entry)
+    assert blk.field_degree == 1 and blk.motion_dim == 9 and blk.field_scale > 0
+    np.testing.assert_allclose(np.asarray(blk.field_axes) @ np.asarray(blk.field_axes).T, np.eye(2), atol=1e-9)
+    assert blk.rigid_ar.shape[1:] == (9, 9)
+    for est in ("kf", "ge"):
+        out = str(tmp_path / f"{est}.npz")
+        res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", est,
+                                        "-o", out])
+        assert res.exit_code == 0, res.output
+        e = read_estimates(out)
+        assert e.meta["input_states"] == blk.size
+        assert np.isfinite(e.predictions[1:]).any()
+    sim = str(tmp_path / "sim.npz")
+    assert CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "2", "--seed", "2", "-o",
+                                     sim]).exit_code == 0
+    res = CliRunner().invoke(main, ["fit", sim, "--model", PAPER, "-o", str(tmp_path / "q.yaml"), "--field-degree",
+                                    "1"])
+    assert res.exit_code == 2 and "--field-degree" in res.output
+    d = yaml.safe_load(open(params))
+    d["estimated_input"]["field_axes"] = [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
+    bad = str(tmp_path / "bad.yaml")
+    with open(bad, "w") as f:
+        yaml.safe_dump(d, f)
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", bad, "--estimator", "kf",
+                                    "-o", str(tmp_path / "bad.npz")])
+    assert res.exit_code == 2 and "estimated_input" in res.output and "field_axes" in res.output
+    assert "Traceback" not in res.output and not (tmp_path / "bad.npz").exists()

@@ -26,9 +26,11 @@ from heartcv.tracker.unknown_input import (
 from tests.conftest import load_yaml
 
 
-def _model(bpm=72.0, **est):
+def _model(bpm=72.0, noise=None, **est):
     d = copy.deepcopy(load_yaml("paper_patch.yaml"))
     d["inputs"]["pressure"]["heart_rate_bpm"] = bpm
+    if noise is not None:
+        d["noise"]["measurement_std"] = noise
     d["estimation"].update(est)
     return build_model(model_config_from_dict(d))
 
@@ -132,7 +134,7 @@ def test_profile_recovers_amplitudes_translation_and_offsets_exactly():
     tau = np.zeros((K, 3))
     tau[1:] = 1e-3 * rng.standard_normal((K - 1, 3))
     offsets = meas.reference + 1e-4 * rng.standard_normal((P, 3))
-    d0, J = prob0._design(m.config.theta)
+    d0, J = prob0._design(m.config.theta)[:2]
     disp = np.zeros((K, P, 3))
     disp[prob0.seen] = d0 + np.einsum("nia,a->ni", J, alpha)
     pos = offsets[None] + tau[:, None] + disp
@@ -516,3 +518,269 @@ def test_an_autoregressive_translation_predicts_better_than_a_random_walk():
     (p, e_ar), (_, e_rw) = err(None), err(0)
     assert p >= 1
     assert e_ar < 0.92 * e_rw, (e_ar, e_rw)
+
+
+# -- a smooth displacement field in the rigid motion's place ---------------------------------------------------------
+def test_field_basis_and_the_block_move_each_point_by_the_field_at_its_position():
+    """The block with a degree-d field moves a point at X by ``sum_j phi_j(u, v) c_j`` with the monomials by hand
+    (1, u, v, u^2, u v, v^2 at ``(u, v) = axes (X - centre) / scale``), the heartbeat's rigid harmonics alike for
+    every point; degree 0 is the translation map for every point. The observation needs the points' positions."""
+    from heartcv.tracker.unknown_input import extend_observation, field_basis, field_powers
+
+    assert field_powers(2) == [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]
+    rng = np.random.default_rng(1)
+    X = rng.uniform(-0.01, 0.01, (7, 3))
+    centre, scale = (0.001, -0.002, 0.0005), 0.005
+    axes = np.linalg.qr(rng.standard_normal((3, 2)))[0].T                       # 2 orthonormal rows
+    u, v = ((X - centre) @ axes.T / scale).T
+    np.testing.assert_allclose(field_basis(X, 2, centre, axes, scale),
+                               np.stack([np.ones(7), u, v, u * u, u * v, v * v], axis=1), rtol=1e-14)
+    H = 2
+    for d, n in ((0, 1), (1, 3), (2, 6)):
+        D = 3 * n
+        m = 2 * H + D + 6 * H
+        blk = InputBlock(1.1, H, 0.04, 1, 0, np.zeros(m), np.ones(m), np.ones(m), field_degree=d,
+                         field_centre=centre, field_scale=scale, field_axes=axes)
+        assert blk.size == m and blk.motion_dim == D
+        e = rng.standard_normal(m)
+        c = e[2 * H:2 * H + D].reshape(n, 3)
+        rigid_harm = blk.translation_map() @ e - c[0]        # the heartbeat's harmonics of the rigid motion
+        want = field_basis(X, d, centre, axes, scale) @ c + rigid_harm
+        np.testing.assert_allclose(np.einsum("pam,m->pa", blk.motion_maps(X), e), want, rtol=1e-12, atol=1e-15)
+        G = extend_observation(np.zeros((21, 4)), 7, blk, X)
+        np.testing.assert_allclose((G[:, 4:] @ e).reshape(7, 3), want, rtol=1e-12, atol=1e-15)
+        again = InputBlock.from_dict(blk.to_dict())
+        assert (again.field_degree, again.field_centre, again.field_scale) == (d, centre, scale)
+        np.testing.assert_array_equal(again.field_axes, axes)
+        np.testing.assert_array_equal(again.motion_maps(X), blk.motion_maps(X))
+    with pytest.raises(ValueError, match="points"):
+        extend_observation(np.zeros((21, 4)), 7, blk)
+    with pytest.raises(ValueError, match="field_degree"):
+        InputBlock(1.1, H, 0.04, 1, 0, np.zeros(m), np.ones(m), np.ones(m), field_degree=3)
+    with pytest.raises(ValueError, match="rigid_ar"):
+        InputBlock(1.1, H, 0.04, 1, 0, np.zeros(m + 9), np.ones(m + 9), np.ones(m + 9), field_degree=1,
+                   rigid_ar=np.zeros((1, 3, 3)))
+    with pytest.raises(ValueError, match="field_axes"):
+        InputBlock(1.1, H, 0.04, 1, 0, np.zeros(m), np.ones(m), np.ones(m), field_degree=2,
+                   field_axes=2 * axes)
+
+
+def test_the_field_block_propagates_the_field_as_its_autoregression():
+    """With a degree-1 field (D = 9) and a VAR(2) of its increments, the transition reproduces ``c_(k+1) = c_k +
+    sum_i A_i (c_(k+1-i) - c_(k-i))`` to 1e-15 of the values; the translation states are the first 3 of ``tau``
+    and of each lag."""
+    rng = np.random.default_rng(2)
+    H, D, p = 1, 9, 2
+    A = 0.2 * rng.standard_normal((p, D, D))
+    m = 2 * H + D + 6 * H + D * p
+    blk = InputBlock(1.1, H, 0.04, 1, 0, np.zeros(m), np.ones(m), np.ones(m), rigid_ar=A, field_degree=1)
+    tau = slice(2 * H, 2 * H + D)
+    assert blk.translation_states == (2 * H, 2 * H + D + 6 * H, 2 * H + 2 * D + 6 * H)
+    hist = rng.standard_normal((p + 1, D))
+    e = rng.standard_normal(m)
+    e[tau] = hist[0]
+    e[blk.lags] = hist[1:].reshape(-1)
+    T = blk.transition()
+    cs = list(hist[::-1])
+    for _ in range(15):
+        inc = [cs[-j] - cs[-j - 1] for j in range(1, p + 1)]
+        cs.append(cs[-1] + sum(A[i] @ inc[i] for i in range(p)))
+        e = T @ e
+        np.testing.assert_allclose(e[tau], cs[-1], rtol=0, atol=1e-15 * max(1.0, np.abs(cs[-1]).max()) * 10)
+        np.testing.assert_allclose(e[blk.lags], np.concatenate(cs[-2:-2 - p:-1]), rtol=0, atol=1e-13)
+
+
+def test_field_autoregression_is_chosen_by_prediction():
+    """Monte Carlo with fixed seeds: for a degree-1 field's increments (D = 9, 100 frames) following a VAR(1)
+    (0.7 on the diagonal, coupled), :func:`select_field_ar` picks an order >= 1; for white increments (a random
+    walk) order 0 in at least 8 of 10 draws (measured 10 of 10); the fitted coefficients of the VAR(1) at 3000
+    frames are within 0.05 of the truth."""
+    from heartcv.tracker.unknown_input import fit_increment_ar, select_field_ar
+
+    rng = np.random.default_rng(4)
+    D = 9
+    A = 0.7 * np.eye(D) + 0.1 * rng.standard_normal((D, D))
+    A *= 0.85 / max(abs(np.linalg.eigvals(A)))
+
+    def var(K, seed):
+        r = np.random.default_rng(seed)
+        d = np.zeros((K + 50, D))
+        for k in range(1, K + 50):
+            d[k] = A @ d[k - 1] + 1e-4 * r.standard_normal(D)
+        return d[50:]
+
+    p, ridge = select_field_ar(var(100, 5))
+    assert p >= 1
+    white = [select_field_ar(np.random.default_rng(s).standard_normal((100, D)))[0] for s in range(10)]
+    assert sum(o == 0 for o in white) >= 8, white
+    est, sd = fit_increment_ar(var(3000, 6), 1, 1e-6)
+    np.testing.assert_allclose(est[0], A, atol=0.05)
+    assert select_field_ar(var(100, 5), order=2)[0] == 2
+    assert select_field_ar(var(100, 5), order=0) == (0, select_field_ar(var(100, 5), order=0)[1])
+
+
+def test_a_field_block_predicts_an_affine_motion_better_than_a_translation():
+    """The paper patch at 72 bpm, its pressure dropped, with an affine displacement field added whose 9
+    coefficients' increments follow a VAR(1) (0.9; 0.02 mm noise per frame, measurements 0.02 mm): the fit's
+    residual field recovers the field's non-translation part (its increments at the points correlate with the
+    truth's: measured 0.75, bound 0.6; over 14 points the fit's input-driven bulge and offsets take a share), and
+    the KF with the degree-1 block predicts the true surface far better than with the translation alone, which
+    cannot follow the points' differing motion (measured 0.196 against 5.33 mm; bound 0.5x)."""
+    from heartcv.tracker.unknown_input import field_basis
+
+    m = _model(72.0, noise=2e-5)
+    sim = simulate(m, 10.0, np.random.default_rng(7), process_noise=False, initial_noise=False)
+    meas = to_measurements(sim)
+    K = 90
+    rng = np.random.default_rng(8)
+    inc = np.zeros((meas.n_frames + 50, 9))
+    for k in range(1, inc.shape[0]):
+        inc[k] = 0.9 * inc[k - 1] + SIGMA_FIELD * rng.standard_normal(9)
+    coef = np.cumsum(inc[50:], axis=0).reshape(-1, 3, 3)                       # (K, monomial, axis)
+    X = meas.reference
+    centre = X.mean(axis=0)
+    axes = np.linalg.svd(X - centre, full_matrices=False)[2][:2]
+    phi = field_basis(X, 1, centre, axes, 0.01)                                 # (P, 3)
+    motion = np.einsum("pj,kja->kpa", phi, coef)
+    blind, hr, prob, res, alpha, sd, rigid = _fit_blind(meas, meas.positions + motion, K)
+    frame = prob.field_frame()
+    field = prob.residual_field(res.theta, 1, frame).reshape(K, 2, 3)          # the u and v monomials
+    fitted = np.einsum("pj,kja->kpa", field_basis(X, 1, *frame)[:, 1:], field)
+    true = np.einsum("pj,kja->kpa", phi[:, 1:], coef[:K, 1:])
+    d_fit, d_true = np.diff(fitted, axis=0), np.diff(true, axis=0)
+    d_fit, d_true = d_fit - d_fit.mean(axis=1, keepdims=True), d_true - d_true.mean(axis=1, keepdims=True)
+    r = np.corrcoef(d_fit.ravel(), d_true.ravel())[0, 1]
+    assert r > 0.6, r
+    ref = dataclasses.replace(blind, reference=prob.offsets(res.theta))
+    truth = sim.positions + motion
+
+    def err(d):
+        blk = input_block_from_fit(hr.frequency_hz, HARMONICS, prob.dt, 1, 0, alpha, sd, rigid, blind.times[:K],
+                                   field=field.reshape(K, 6) if d else None, field_degree=d,
+                                   field_frame=frame if d else None)
+        e = run_kalman(m, ref, res.theta, input_block=blk)
+        return float(np.nanmean(np.linalg.norm(e.predictions[1:] - truth[1:], axis=-1)))
+
+    e1, e0 = err(1), err(0)
+    assert e1 < 0.5 * e0, (e1, e0)
+
+
+SIGMA_FIELD = 2e-5
+
+
+def test_centring_moves_the_models_mean_displacement_into_the_translation_and_nothing_else():
+    """UnknownInputProblem with ``centred=True`` on the paper patch, pressure dropped: the amplitudes, the residual,
+    the cost and the offsets (the points' undeformed positions) equal the uncentred problem's (the column space is
+    the same) to 1e-9 relative; the translation differs by exactly the model's mean displacement ``C q_k`` (C the
+    mean displacement map over the points, q_k the model's positions); the estimators' observation with a centred
+    block has rows whose mean over the points is zero in the model's columns, the block's columns unchanged."""
+    from heartcv.tracker.unknown_input import extend_observation
+
+    m = _model(72.0, estimate=["nu"])
+    sim = simulate(m, 4.0, np.random.default_rng(3), process_noise=False, initial_noise=False)
+    meas = to_measurements(sim)
+    blind = MeasurementSet(meas.times, meas.point_ids, meas.positions, meas.covariances, meas.reference,
+                           np.zeros((meas.n_frames, 0)), (), (), "patch")
+    theta = m.config.theta.copy()
+    u = UnknownInputProblem(m, blind, 1.2, 3, 0, frames=60)
+    c = UnknownInputProblem(m, blind, 1.2, 3, 0, frames=60, centred=True)
+    a_u, tau_u, off_u, res_u, _ = u.solve(theta)
+    a_c, tau_c, off_c, res_c, _ = c.solve(theta)
+    np.testing.assert_allclose(a_c, a_u, rtol=1e-9)
+    np.testing.assert_allclose(res_c, res_u, rtol=1e-9, atol=1e-12 * np.abs(res_u).max())
+    assert c.chi2(theta) == pytest.approx(u.chi2(theta), rel=1e-9)
+    X = u.simulate(theta, u._U)                                    # (K, 2r, 1 + 2H)
+    q = X[:, :m.r, 0] + X[:, :m.r, 1:] @ a_u                        # the model's positions with the fitted input
+    mean_disp = q @ c.centring.T                                    # (K, 3)
+    np.testing.assert_allclose(tau_c, tau_u + mean_disp, rtol=0, atol=1e-9 * np.abs(tau_u).max())
+    np.testing.assert_allclose(off_c, off_u, rtol=0, atol=1e-9 * np.abs(off_u).max())
+    H = np.random.default_rng(4).standard_normal((3 * 5, 7))
+    blk = InputBlock(1.1, 1, 0.04, 1, 0, np.zeros(11), np.ones(11), np.ones(11), centred=True)
+    E = extend_observation(H, 5, blk)
+    np.testing.assert_allclose(E[:, :7].reshape(5, 3, 7).mean(axis=0), 0.0, atol=1e-15)
+    np.testing.assert_allclose(E[:, :7], (H.reshape(5, 3, 7) - H.reshape(5, 3, 7).mean(axis=0)).reshape(15, 7))
+    np.testing.assert_array_equal(E[:, 7:], np.tile(blk.translation_map(), (5, 1)))
+    assert InputBlock.from_dict(blk.to_dict()).centred is True
+    d = blk.to_dict()
+    d["centred"] = "yes"
+    with pytest.raises(ValueError, match="centred"):
+        InputBlock.from_dict(d)
+
+
+def test_the_translation_after_the_fit_continues_from_where_the_fit_left_it():
+    """``input_block_from_fit`` keeps the non-periodic translation at the last fitted frame (``end_level``): for a
+    translation that is a ramp plus the heartbeat's harmonics, the translation expected after the fit
+    (:meth:`InputBlock.mean_translation_after`, used for the references of points born later) equals the prior
+    mean's propagation shifted by the ramp's rise over the window, exactly, with and without an autoregression; the
+    dictionary round trip keeps it; a block without it (files written before) falls back to the prior mean's."""
+    K, f, dt = 100, 1.1, 0.04
+    t = np.arange(K) * dt
+    tr = np.outer(t, [1e-3, -2e-3, 5e-4]) + 1e-4 * np.cos(2 * np.pi * f * t)[:, None]
+    alpha = np.array([1.0, 0.0, 0.5, 0.1])
+    for order in (0, 2):
+        blk = input_block_from_fit(f, 2, dt, 1, 0, alpha, 0.1 * np.ones(4), tr, t, rigid_ar_order=order)
+        H = 2
+        before, after = blk.mean_translation(300), blk.mean_translation_after(300)
+        rise = np.asarray(blk.end_level) - blk.mean0[2 * H:2 * H + 3]
+        np.testing.assert_allclose(after - before, np.broadcast_to(rise, after.shape), rtol=0, atol=1e-15)
+        # the rise is the ramp's over the window, less what the harmonics' least squares take of a ramp
+        np.testing.assert_allclose(rise, (t[-1] - t[0]) * np.array([1e-3, -2e-3, 5e-4]), rtol=0.05)
+        again = InputBlock.from_dict(blk.to_dict())
+        assert again.end_level == blk.end_level
+        np.testing.assert_array_equal(again.mean_translation_after(300), after)
+    old = dataclasses.replace(blk, end_level=None)
+    np.testing.assert_array_equal(old.mean_translation_after(50), old.mean_translation(50))
+    with pytest.raises(ValueError, match="end_level"):
+        dataclasses.replace(blk, end_level=(0.0, 1.0))
+
+
+def test_points_born_after_the_fit_get_references_under_the_observed_translation(monkeypatch):
+    """The paper patch at 72 bpm, pressure dropped, moved by a 2 mm ramp that starts after the fitted frames (0-89);
+    3 points first seen at frame 120: their undeformed references (after the common gauge shift) are as good as the
+    window points' own offsets from the blind fit (measured: at most 0.42 mm off the truth, the window's up to
+    0.45 mm; bound 0.6 mm), because the translation of each later frame is what the window's points show there.
+    With the block's extrapolation instead, which knows nothing of the ramp, they are 0.79-1.32 mm off (bound: at
+    least twice as far). The window's points keep their offsets exactly."""
+    import heartcv.tracker.fit as fit_module
+    from heartcv.tracker.fit import undeformed_references
+
+    m = _model(72.0)
+    sim = simulate(m, 10.0, np.random.default_rng(7), process_noise=False, initial_noise=False)
+    meas = to_measurements(sim)
+    K = 90
+    ramp = np.zeros((meas.n_frames, 1, 3))
+    ramp[K:, 0] = np.linspace(0.0, 1.0, meas.n_frames - K)[:, None] * np.array([2e-3, 0.0, -1e-3])
+    pos = meas.positions + ramp
+    late = [0, 5, 9]
+    pos[:120, late] = np.nan
+    cov = meas.covariances.copy()
+    cov[:120, late] = np.nan
+    blind = MeasurementSet(meas.times, meas.point_ids, pos, cov, meas.reference, np.zeros((meas.n_frames, 0)), (),
+                           (), "patch")
+    hr = estimate_heart_rate(blind.times[:K], blind.positions[:K])
+    fm = _model(72.0, estimate=["nu"])
+    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=K, centred=True)
+    res = fit(fm, blind, problem=prob)
+    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    blk = input_block_from_fit(hr.frequency_hz, HARMONICS, prob.dt, 1, 0, alpha, sd, rigid, blind.times[:K],
+                               centred=True)
+    out = undeformed_references(fm, blind, res.theta, K, input_block=blk)
+    ids = list(out.point_ids)
+    assert sorted(out.meta["late_points"]) == sorted(int(blind.point_ids[i]) for i in late)
+    win = [i for i in range(blind.n_points) if i not in late]
+    # the window's offsets are the fit's (the same problem, the same theta)
+    np.testing.assert_allclose(out.reference[[ids.index(blind.point_ids[i]) for i in win]],
+                               prob.offsets(res.theta), rtol=0, atol=1e-12)
+    # the late points against the window points' own offsets: the reference differences to the true undeformed
+    # positions are a common shift (the gauge, the same for all), so compare after removing the window's mean shift
+    shift = np.mean(prob.offsets(res.theta) - meas.reference[prob.keep], axis=0)
+
+    def late_error(refs):
+        r = refs.reference[[list(refs.point_ids).index(blind.point_ids[i]) for i in late]]
+        return np.abs(r - meas.reference[late] - shift).max()
+
+    err = late_error(out)
+    assert err < 6e-4, err
+    monkeypatch.setattr(fit_module, "_observed_translation", lambda model, ms, keep, off, th, kw: kw["translation"])
+    extrapolated = late_error(undeformed_references(fm, blind, res.theta, K, input_block=blk))
+    assert extrapolated > 2 * err, (extrapolated, err)
