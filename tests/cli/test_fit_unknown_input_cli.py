@@ -382,3 +382,47 @@ def test_field_degree_gives_a_field_block_that_track_uses(tmp_path, blind_file):
                                     "-o", str(tmp_path / "bad.npz")])
     assert res.exit_code == 2 and "estimated_input" in res.output and "field_axes" in res.output
     assert "Traceback" not in res.output and not (tmp_path / "bad.npz").exists()
+
+
+def test_bad_rigid_motion_keys_in_a_parameters_file_exit_2(tmp_path, blind_file):
+    """Every new key of the estimated input's rigid motion, broken in a parameters file, is refused by track with
+    exit 2 naming the file and estimated_input (no traceback, nothing written); removing them all reads the block as
+    a file written before them would be (a translation, the model not centred) and tracks."""
+    import yaml
+
+    params = str(tmp_path / "p.yaml")
+    assert CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90"]).exit_code \
+        == 0
+    good = yaml.safe_load(open(params))
+    bad_values = {"field_degree": [3, -1, "x", 1.5e9], "field_centre_m": [[0.0, 0.0], ["a", 0, 0], None],
+                  "field_axes": [[[1, 0, 0]], [[1, 0, 0], [0, 2, 0]], "axes"], "field_scale_m": [0.0, -1.0, "s"],
+                  "centred": ["yes", 1], "end_level": [[0.0] * 4, ["a"] * 9, [float("nan")] * 9],
+                  "rigid_ar": [[[[0.0] * 3] * 3]]}
+    for key, values in bad_values.items():
+        for v in values:
+            d = yaml.safe_load(yaml.safe_dump(good))
+            d["estimated_input"][key] = v
+            bad = tmp_path / "bad.yaml"
+            bad.write_text(yaml.safe_dump(d))
+            out = tmp_path / "bad.npz"
+            res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", str(bad),
+                                            "--estimator", "kf", "-o", str(out)])
+            assert res.exit_code == 2, (key, v, res.output)
+            assert "estimated_input" in res.output and str(bad) in res.output, (key, v, res.output)
+            assert "Traceback" not in res.output and not out.exists()
+    d = yaml.safe_load(yaml.safe_dump(good))
+    n = len(d["estimated_input"]["mean0"])
+    D = 9 * (1 + d["estimated_input"]["rigid_ar_order"])      # the field's states and lags, to drop with the keys
+    for key in ("field_degree", "field_centre_m", "field_axes", "field_scale_m", "centred", "end_level",
+                "rigid_ar"):
+        d["estimated_input"].pop(key)
+    zp = 2 * d["estimated_input"]["harmonics"]
+    for k in ("mean0", "std0", "noise_std"):                 # a translation: keep its 3 states, drop the rest
+        v = d["estimated_input"][k]
+        d["estimated_input"][k] = v[:zp + 3] + v[zp + 9:n - (D - 9)]
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump(d))
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", str(old), "--estimator", "kf",
+                                    "-o", str(tmp_path / "old.npz")])
+    assert res.exit_code == 0, res.output
+    assert read_estimates(str(tmp_path / "old.npz")).meta["field_degree"] == 0
