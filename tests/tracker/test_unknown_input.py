@@ -593,7 +593,7 @@ def test_the_field_block_propagates_the_field_as_its_autoregression():
 def test_field_autoregression_is_chosen_by_prediction():
     """Monte Carlo with fixed seeds: for a degree-1 field's increments (D = 9, 100 frames) following a VAR(1)
     (0.7 on the diagonal, coupled), :func:`select_field_ar` picks an order >= 1; for white increments (a random
-    walk) order 0 in at least 8 of 10 draws (measured 10 of 10); the fitted coefficients of the VAR(1) at 3000
+    walk) order 0 in at least 8 of 10 draws (measured 9 of 10); the fitted coefficients of the VAR(1) at 3000
     frames are within 0.05 of the truth."""
     from heartcv.tracker.unknown_input import fit_increment_ar, select_field_ar
 
