@@ -244,6 +244,9 @@ def read_estimates(path) -> EstimateSet:
 
     if any(n not in NAMES for n in est) or len(set(est)) != len(est):
         raise InputError(path, f"distinct names from {list(NAMES)} expected, got {list(est)}", "meta.estimated")
+    held = _meta_str_list(meta, "held_parameters", path)
+    if any(n not in NAMES for n in held):
+        raise InputError(path, f"names from {list(NAMES)} expected, got {list(held)}", "meta.held_parameters")
     if meta.get("dropped_points") is not None:
         _meta_int_list(meta, "dropped_points", path, P)
     for key in ("theta0", "prior_std_phi"):

@@ -246,13 +246,14 @@ def test_render_truth_positions_into_the_patch_frame():
 
 def test_report_meta_entries_are_checked(run, tmp_path):
     """The estimate meta that the report reads is validated: a wrong type exits 2 naming the file and the field; a
-    numeric string is read as its number (the fuzzer found meta.rigid_ar_order = [] crashing the summary)."""
+    numeric string is read as its number (the fuzzer found meta.rigid_ar_order = [] and meta.held_parameters = 12345
+    crashing the summary and the figures)."""
     from heartcv.tracker.io import read_estimates, write_estimates
 
     est = read_estimates(run / "kf.npz")
     K = est.times.size
     cases = {"rigid_ar_order": [], "heart_rate_hz": [1.0], "fit_frames": K + 1, "without_input": "yes",
-             "heldout_points": ["a"], "heart_rate_source": 3}
+             "heldout_points": ["a"], "heart_rate_source": 3, "held_parameters": 12345, "field_degree": "one"}
     for key, bad in cases.items():
         path = tmp_path / f"bad_{key}.npz"
         write_estimates(path, est, dict(est.meta, **{key: bad}))
