@@ -818,7 +818,7 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
         prob = UnknownInputProblem(model, meas, input_block.frequency_hz, input_block.harmonics, input_block.column,
                                    frames, centred=input_block.centred)
         late_kw = {"inputs": known_inputs(meas, model, input_block) + input_block.mean_inputs(meas.n_frames),
-                   "translation": input_block.mean_translation_after(meas.n_frames), "centring": prob.centring}
+                   "translation": input_block.mean_translation(meas.n_frames), "centring": prob.centring}
     keep = prob.keep
     offsets = prob.offsets(np.asarray(theta, float), relative_model_error)
     late = np.zeros(0, np.int64)

@@ -429,8 +429,6 @@ class InputBlock:
     centred : bool              the model's displacements centred over the points (their mean displacement map
                                 subtracted from each; :class:`tracker.fit.UnknownInputProblem` ``centred``): ``tau``
                                 is then the tracks' mean motion, not that minus the model's mean bulge
-    end_level : (D,), optional  ``tau`` without its harmonics at the last fitted frame (None: unknown, files written
-                                before it)
     field_degree : int          d, the degree of the displacement field ``tau`` (0: a translation)
     field_centre : (3,)         the field's origin in the patch frame (m)
     field_axes : (2, 3)         the field's in-plane directions (orthonormal rows; None: the patch's x and y)
@@ -455,7 +453,6 @@ class InputBlock:
     field_scale: float = 1.0
     field_axes: tuple | None = None
     centred: bool = False
-    end_level: tuple | None = None
 
     def __post_init__(self):
         if self.rigid_harmonics is None:
@@ -474,11 +471,6 @@ class InputBlock:
         object.__setattr__(self, "field_centre", tuple(float(v) for v in centre))
         object.__setattr__(self, "field_axes", tuple(tuple(float(v) for v in row) for row in axes))
         object.__setattr__(self, "field_scale", float(self.field_scale))
-        if self.end_level is not None:
-            end = np.asarray(self.end_level, float).reshape(-1)
-            if end.size != self.motion_dim or not np.isfinite(end).all():
-                raise ValueError(f"input block: end_level must hold {self.motion_dim} finite values, got {end.size}")
-            object.__setattr__(self, "end_level", tuple(float(v) for v in end))
         D = self.motion_dim
         ar = np.zeros((0, D, D)) if self.rigid_ar is None else np.asarray(self.rigid_ar, float)
         if ar.ndim != 3 or ar.shape[1:] != (D, D) or not np.isfinite(ar).all():
@@ -635,19 +627,6 @@ class InputBlock:
         """The rigid translation (K, 3) of the block's prior mean propagated without noise."""
         return self._propagated(self.translation_map(), K)
 
-    def mean_translation_after(self, K: int) -> np.ndarray:
-        """The rigid translation (K, 3) expected after the fitted frames: as :meth:`mean_translation`, with the
-        translation's non-periodic part (and its lags) where the fit left it at its last frame instead of its first
-        (a random walk's forecast; the harmonics unchanged). Without ``end_level`` :meth:`mean_translation`."""
-        if self.end_level is None:
-            return self.mean_translation(K)
-        mean0 = self.mean0.copy()
-        end = np.asarray(self.end_level)
-        mean0[self.slices[1]] = end
-        if self.ar_order:
-            mean0[self.lags] = np.tile(end, self.ar_order)
-        return replace(self, mean0=mean0)._propagated(self.translation_map(), K)
-
     def to_dict(self) -> dict:
         return {"kind": "harmonic", "frequency_hz": float(self.frequency_hz), "harmonics": int(self.harmonics),
                 "dt": float(self.dt), "n_u": int(self.n_u), "column": int(self.column),
@@ -657,7 +636,6 @@ class InputBlock:
                 "field_degree": int(self.field_degree), "field_centre_m": list(self.field_centre),
                 "field_axes": [list(r) for r in self.field_axes], "field_scale_m": float(self.field_scale),
                 "centred": bool(self.centred),
-                "end_level": None if self.end_level is None else list(self.end_level),
                 "mean0": self.mean0.tolist(),
                 "std0": self.std0.tolist(), "noise_std": self.noise_std.tolist()}
 
@@ -681,8 +659,7 @@ class InputBlock:
                       fd, tuple(np.asarray(d.get("field_centre_m", (0.0, 0.0, 0.0)), float).reshape(-1)),
                       float(d.get("field_scale_m", 1.0)),
                       None if d.get("field_axes") is None else np.asarray(d["field_axes"], float),
-                      _flag(d.get("centred", False), "centred"),
-                      None if d.get("end_level") is None else np.asarray(d["end_level"], float))
+                      _flag(d.get("centred", False), "centred"))
         except KeyError as exc:
             raise ValueError(f"{exc.args[0]}: missing") from None
         except (TypeError, ValueError) as exc:
@@ -721,8 +698,7 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     the fit's plus ``drift`` of the amplitude; its random walk per frame ``drift |(a_h, b_h)| sqrt(dt)``. The rigid
     motion: the heartbeat's harmonics (and the respiration's) fitted jointly to the translation, likewise; the
     random-walk translation starts where the translation minus its harmonics starts, with standard deviation the
-    residual's, and moves by the residual's increments (their standard deviation per frame); where it was at the
-    last fitted frame is kept too (``end_level``, for :meth:`InputBlock.mean_translation_after`). ``rigid_harmonics``
+    residual's, and moves by the residual's increments (their standard deviation per frame). ``rigid_harmonics``
     (default ``harmonics``) of the heartbeat in the rigid motion; with ``rigid_ar_order`` p > 0 the increments
     follow the vector autoregression fitted to them by least squares (:func:`fit_increment_ar`; None, the
     default: the order in 0 .. :data:`MAX_AR_ORDER` by :func:`select_increment_ar`, 0 the plain random walk), the
@@ -776,9 +752,7 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     if p:
         ar, rw_sd = fit_increment_ar(inc, p, ridge)
     tau = slice(2 * H, 2 * H + D)
-    level = np.concatenate([coef[0], fld.mean(axis=0)]) if d else coef[0]
-    mean0[tau] = level + resid[0]                       # the first frame's translation (and field)
-    end = level + resid[-1]                             # the last fitted frame's: where the walk was left
+    mean0[tau] = (np.concatenate([coef[0], fld.mean(axis=0)]) if d else coef[0]) + resid[0]   # the first frame's
     std0[tau] = np.std(resid, axis=0) + 1e-9
     q[tau] = rw_sd + 1e-9
     zr = 2 * H + D
@@ -796,7 +770,7 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     return InputBlock(float(frequency_hz), H, float(dt), int(n_u), int(column), mean0, std0, q, scale,
                       float(respiration_hz) if R else 0.0, R, Hr, ar, d,
                       *((tuple(field_frame[0]), float(field_frame[2]), field_frame[1]) if d
-                        else ((0.0, 0.0, 0.0), 1.0, None)), bool(centred), tuple(float(v) for v in end))
+                        else ((0.0, 0.0, 0.0), 1.0, None)), bool(centred))
 
 
 MAX_AR_ORDER = 4

@@ -396,7 +396,7 @@ def test_bad_rigid_motion_keys_in_a_parameters_file_exit_2(tmp_path, blind_file)
     good = yaml.safe_load(open(params))
     bad_values = {"field_degree": [3, -1, "x", 1.5e9], "field_centre_m": [[0.0, 0.0], ["a", 0, 0], None],
                   "field_axes": [[[1, 0, 0]], [[1, 0, 0], [0, 2, 0]], "axes"], "field_scale_m": [0.0, -1.0, "s"],
-                  "centred": ["yes", 1], "end_level": [[0.0] * 4, ["a"] * 9, [float("nan")] * 9],
+                  "centred": ["yes", 1],
                   "rigid_ar": [[[[0.0] * 3] * 3]]}
     for key, values in bad_values.items():
         for v in values:
@@ -413,8 +413,7 @@ def test_bad_rigid_motion_keys_in_a_parameters_file_exit_2(tmp_path, blind_file)
     d = yaml.safe_load(yaml.safe_dump(good))
     n = len(d["estimated_input"]["mean0"])
     D = 9 * (1 + d["estimated_input"]["rigid_ar_order"])      # the field's states and lags, to drop with the keys
-    for key in ("field_degree", "field_centre_m", "field_axes", "field_scale_m", "centred", "end_level",
-                "rigid_ar"):
+    for key in ("field_degree", "field_centre_m", "field_axes", "field_scale_m", "centred", "rigid_ar"):
         d["estimated_input"].pop(key)
     zp = 2 * d["estimated_input"]["harmonics"]
     for k in ("mean0", "std0", "noise_std"):                 # a translation: keep its 3 states, drop the rest
