@@ -46,6 +46,10 @@ MAX_STARTS = 1000
               help="An estimated input's rigid translation beyond the heartbeat's and respiration's harmonics: its "
                    "increments a vector autoregression of this order fitted over the fitted frames; 'auto' the "
                    "order 0-4 with the least BIC (0: a random walk); 'none' a random walk (docs/model.md 17).")
+@click.option("--rigid-harmonics", type=Int(0, 10), default=None,
+              help="Harmonics of the heart rate in an estimated input's rigid motion (default: --harmonics); 0 "
+                   "leaves the rigid motion to its autoregression alone. Fixed-rate harmonics predict the fitted "
+                   "frames well but drift out of phase when the heart rate changes after them (docs/model.md 17).")
 @click.option("--field-degree", type=click.Choice(("0", "1", "2")), default=None,
               help="An estimated input's rigid motion as a smooth displacement field of this degree along the "
                    "observed surface [default: 1, an affine field: translation, in-plane rotation, stretch and "
@@ -61,7 +65,7 @@ MAX_STARTS = 1000
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
 def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, respiration,
-        rigid_ar, field_degree, patch_mode, as_json):
+        rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -75,6 +79,7 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
     from heartcv.tracker.files import InputError
     from heartcv.tracker.fit import fit as run_fit
     from heartcv.tracker.io import file_hash, read_measurements, write_parameters
+    from heartcv.tracker.unknown_input import HARMONICS
 
     if Path(output).suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
@@ -91,6 +96,11 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
         raise BadInput("--rigid-ar applies to an estimated input (--input estimate) only")
     if field_degree is not None and not estimate_input:
         raise BadInput("--field-degree applies to an estimated input (--input estimate) only")
+    if rigid_harmonics is not None and not estimate_input:
+        raise BadInput("--rigid-harmonics applies to an estimated input (--input estimate) only")
+    if rigid_harmonics is not None and rigid_harmonics > (HARMONICS if harmonics is None else harmonics):
+        raise BadInput(f"--rigid-harmonics {rigid_harmonics}: at most --harmonics "
+                       f"({HARMONICS if harmonics is None else harmonics}) expected")
     if patch_mode == "observed" and meas.frame != "rig":
         raise BadInput(f"--patch observed: {measurements} is already in the patch frame (registered)")
     registration = estimated_input = None
@@ -104,7 +114,7 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
                                                               None if rigid_ar == "auto" else
                                                               0 if rigid_ar == "none" else int(rigid_ar),
                                                               None if field_degree is None
-                                                              else int(field_degree))
+                                                              else int(field_degree), rigid_harmonics)
             else:
                 result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
                                  max_evaluations=max_evaluations)
@@ -205,7 +215,7 @@ def _observed_patch(rig_meas, m, output):
 
 
 def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True,
-                       rigid_ar_order=None, field_degree=None):
+                       rigid_ar_order=None, field_degree=None, rigid_harmonics=None):
     """The fit with an estimated input (heart rate from the tracks, harmonics and rigid motion profiled; the
     respiration rate from the rigid motion when ``respiration`` and one is seen): ``(FitResult, estimated_input
     entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
@@ -266,11 +276,12 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     block = input_block_from_fit(hr.frequency_hz, H, prob.dt, len(m.input_names), column, alpha, alpha_std,
                                  rigid[:, :3], meas.times[:K], respiration_hz=resp.frequency_hz,
                                  rigid_ar_order=rigid_ar_order, field=field, field_degree=field_degree,
-                                 field_frame=frame, centred=True)
+                                 field_frame=frame, centred=True, rigid_harmonics=rigid_harmonics)
     how = " (BIC)" if field_degree == 0 else " (predicting the last 30 % of the fitted frames)"
-    log.info("rigid %s: %s", "translation" if field_degree == 0 else f"motion, a degree-{field_degree} field",
+    log.info("rigid %s: %s beyond %d harmonics of the heart rate",
+             "translation" if field_degree == 0 else f"motion, a degree-{field_degree} field",
              (f"an order-{block.ar_order} autoregression of its increments" if block.ar_order else "a random walk")
-             + (how if rigid_ar_order is None else ""))
+             + (how if rigid_ar_order is None else ""), block.rigid_harmonics)
     entry = block.to_dict()
     entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "std_hz": hr.std_hz, "bpm": 60 * hr.frequency_hz,
                              "peak_hz": hr.peak_hz,
@@ -317,6 +328,8 @@ def _summary(result, output) -> dict:
         else (result.estimated_input.get("respiration") or {}).get("frequency_hz"),
         "rigid_ar_order": None if result.estimated_input is None else result.estimated_input.get("rigid_ar_order"),
         "field_degree": None if result.estimated_input is None else result.estimated_input.get("field_degree"),
+        "rigid_harmonics": None if result.estimated_input is None
+        else result.estimated_input.get("rigid_harmonics"),
         "output": output,
     }
     return summary

@@ -442,7 +442,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
                                                          "theta_truth_coverage_2sigma")}
         d.update(estimator=est.estimator, file=str(r["path"]), steps=int(est.times.size), partial=not est.complete,
                  estimated=list(est.meta.get("estimated", [])), rigid_ar_order=est.meta.get("rigid_ar_order"),
-                 field_degree=est.meta.get("field_degree"),
+                 field_degree=est.meta.get("field_degree"), rigid_harmonics=est.meta.get("rigid_harmonics"),
                  without_input=bool(est.meta.get("without_input", False)),
                  **{f"{r}_{k}": est.meta.get(f"{r}_{k}") for r in ("heart_rate", "respiration_rate")
                     for k in ("hz", "std_hz", "source")})

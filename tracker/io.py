@@ -222,6 +222,8 @@ def _check_report_meta(meta, path, K):
         meta["rigid_ar_order"] = get_field(meta, "rigid_ar_order", "int", path, lo=0, hi=1000, prefix="meta.")
     if meta.get("field_degree") is not None:
         meta["field_degree"] = get_field(meta, "field_degree", "int", path, lo=0, hi=10, prefix="meta.")
+    if meta.get("rigid_harmonics") is not None:
+        meta["rigid_harmonics"] = get_field(meta, "rigid_harmonics", "int", path, lo=0, hi=1000, prefix="meta.")
     if meta.get("fit_frames") is not None:
         meta["fit_frames"] = get_field(meta, "fit_frames", "int", path, lo=1, hi=max(K, 1), prefix="meta.")
     ids = meta.get("heldout_points")

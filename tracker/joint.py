@@ -554,6 +554,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
             "input_states": 0 if input_block is None else input_block.size,
             "rigid_ar_order": None if input_block is None else input_block.ar_order,
             "field_degree": None if input_block is None else input_block.field_degree,
+            "rigid_harmonics": None if input_block is None else input_block.rigid_harmonics,
             "random_walk_std_phi": np.sqrt(np.diag(prior.Q_n)).tolist(),
             "held_parameters": [n for n in model.config.parameter_space().estimated if n not in space.estimated]}
     for name, p in zip(filt.sampled_rate_names, filt.rates):

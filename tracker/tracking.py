@@ -193,7 +193,8 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
             "reference_states": 0 if block is None else block.size,
             "input_states": 0 if input_block is None else input_block.size,
             "rigid_ar_order": None if input_block is None else input_block.ar_order,
-            "field_degree": None if input_block is None else input_block.field_degree}
+            "field_degree": None if input_block is None else input_block.field_degree,
+            "rigid_harmonics": None if input_block is None else input_block.rigid_harmonics}
     adapt = None
     if adaptation is not None:
         from .adaptive import NoiseAdaptation

@@ -95,8 +95,9 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert doc["estimators"]["kf"]["rigid_ar_order"] == p_ar
     assert doc["estimators"]["harmonic"]["rigid_ar_order"] is None
     rigid = f"an order-{p_ar} autoregression" if p_ar else "a random walk"
-    assert (f"Rigid motion (a degree-1 displacement field along the surface) beyond the harmonics: {rigid}"
-            in summary and summary.count("Rigid motion") == 1)
+    assert p.estimated_input["rigid_harmonics"] == 6 == e.meta["rigid_harmonics"]    # the default: --harmonics
+    assert (f"Rigid motion (a degree-1 displacement field along the surface) beyond 6 harmonics of the heart rate: "
+            f"{rigid}" in summary and summary.count("Rigid motion") == 1)
     assert "## Within and after the fitted frames" in summary and "after it (k ≥ 90)" in summary
     assert "after it, tracks seen the frame before" in summary and "Within and after the fitted frames" in \
         (tmp_path / "rep" / "index.html").read_text()
@@ -338,6 +339,45 @@ def test_without_input_is_an_ablation_of_the_estimated_input(tmp_path, blind_fil
                                     str(tmp_path / "y.npz")])
     assert res.exit_code == 2 and "holds no estimated input" in res.output, res.output
     assert not (tmp_path / "x.npz").exists() and not (tmp_path / "y.npz").exists()
+
+
+def test_rigid_harmonics_sets_the_heartbeat_harmonics_of_the_rigid_motion(tmp_path, blind_file):
+    """fit --rigid-harmonics 0 leaves the rigid motion to its autoregression: no heartbeat oscillators in the rigid
+    part of the block (its size 2H + D + D p), the input's own harmonics kept; track records it and report says it;
+    more than --harmonics, or with a recorded pressure, is refused (exit 2) writing nothing."""
+    from heartcv.tracker.unknown_input import InputBlock
+
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90",
+                                    "--rigid-harmonics", "0", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["rigid_harmonics"] == 0
+    entry = read_parameters(params).estimated_input
+    blk = InputBlock.from_dict(entry)
+    assert blk.rigid_harmonics == 0 and blk.harmonics == 6 and len(entry["amplitudes_pa"]) == 12
+    assert blk.size == 2 * 6 + 9 + 9 * blk.ar_order
+    out = str(tmp_path / "kf.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "-o", out])
+    assert res.exit_code == 0, res.output
+    e = read_estimates(out)
+    assert e.meta["rigid_harmonics"] == 0 and e.meta["input_states"] == blk.size
+    rep = tmp_path / "rep"
+    res = CliRunner().invoke(main, ["report", out, "-o", str(rep), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((rep / "metrics.json").read_text())["estimators"]["kf"]["rigid_harmonics"] == 0
+    assert "beyond no harmonics of the heart rate: " in (rep / "summary.md").read_text()
+    for args, word in ((["--rigid-harmonics", "7"], "at most --harmonics (6)"),
+                       (["--harmonics", "3", "--rigid-harmonics", "4"], "at most --harmonics (3)")):
+        res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "q.yaml"), *args])
+        assert res.exit_code == 2 and word in res.output and "Traceback" not in res.output
+    sim = str(tmp_path / "sim.npz")
+    assert CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "2", "--seed", "2", "-o",
+                                     sim]).exit_code == 0
+    res = CliRunner().invoke(main, ["fit", sim, "--model", PAPER, "-o", str(tmp_path / "q.yaml"),
+                                    "--rigid-harmonics", "0"])
+    assert res.exit_code == 2 and "--rigid-harmonics" in res.output
+    assert not (tmp_path / "q.yaml").exists()
 
 
 def test_field_degree_gives_a_field_block_that_track_uses(tmp_path, blind_file):
