@@ -153,8 +153,10 @@ def _headline(doc) -> str:
 
 # -- inputs -----------------------------------------------------------------------------------------
 def _base_label(est) -> str:
-    """The estimator's name, ``name-noinput`` for a run with its estimated input pinned at zero (--without-input)."""
-    return est.estimator + ("-noinput" if est.meta.get("without_input") else "")
+    """The estimator's name, ``name-noinput`` for a run with its estimated input pinned at zero (--without-input),
+    ``name-rigid-ar`` for one whose rigid motion has no heartbeat harmonics (fit --rigid-harmonics 0)."""
+    return (est.estimator + ("-noinput" if est.meta.get("without_input") else "")
+            + ("-rigid-ar" if est.meta.get("rigid_harmonics") == 0 else ""))
 
 
 def _load_estimates(paths) -> dict:
@@ -443,6 +445,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
         d.update(estimator=est.estimator, file=str(r["path"]), steps=int(est.times.size), partial=not est.complete,
                  estimated=list(est.meta.get("estimated", [])), rigid_ar_order=est.meta.get("rigid_ar_order"),
                  field_degree=est.meta.get("field_degree"), rigid_harmonics=est.meta.get("rigid_harmonics"),
+                 rigid_dynamics=(est.meta.get("rigid_dynamics") or {}).get("source"),
                  without_input=bool(est.meta.get("without_input", False)),
                  **{f"{r}_{k}": est.meta.get(f"{r}_{k}") for r in ("heart_rate", "respiration_rate")
                     for k in ("hz", "std_hz", "source")})

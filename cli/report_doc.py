@@ -149,14 +149,16 @@ def _heart_rates(doc) -> list:
         if e.get("rigid_ar_order") is not None:
             hr = e.get("rigid_harmonics")
             orders.setdefault((int(e["rigid_ar_order"]), int(e.get("field_degree") or 0),
-                               None if hr is None else int(hr)), []).append(label)
-    for (p, d, hr), labels in orders.items():
+                               None if hr is None else int(hr), e.get("rigid_dynamics") == "refit"),
+                              []).append(label)
+    for (p, d, hr, refit), labels in orders.items():
         what = f"an order-{p} autoregression of its increments" if p else "a random walk"
         motion = "translation" if d == 0 else f"motion (a degree-{d} displacement field along the surface)"
         beyond = ("the harmonics" if hr is None else "no harmonics of the heart rate" if hr == 0
                   else f"{hr} harmonic{'s' if hr > 1 else ''} of the heart rate")
-        lines.append(f"Rigid {motion} beyond {beyond}: {what} (heartcv fit, docs/model.md 17), in "
-                     f"{', '.join(labels)}.")
+        how = ("relearned by heartcv track from the KF's filtered motion over the fitted frames" if refit
+               else "heartcv fit")
+        lines.append(f"Rigid {motion} beyond {beyond}: {what} ({how}, docs/model.md 17), in {', '.join(labels)}.")
     return lines
 
 

@@ -106,12 +106,16 @@ def _odd_nodes(ctx, param, value):
               help="ge with an estimated input (--params of a fit without pressure): carry the heart rate (and the "
                    "respiration rate, when the fit saw one) among the sampled parameters (docs/model.md 17), or "
                    "hold them at the fit's values.")
+@click.option("--rigid-dynamics", type=click.Choice(("refit", "fit")), default="refit", show_default=True,
+              help="kf/ge/ukf/ekf with an estimated input: 'refit' learns the rigid motion's increment "
+                   "autoregression again from the KF's filtered rigid motion over the fitted frames (when the "
+                   "parameters were fitted to this file; docs/model.md 17); 'fit' keeps the parameters file's.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file (.npz).")
 @json_opt
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
           adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, without_input,
-          sample_heart_rate, output, as_json):
+          sample_heart_rate, rigid_dynamics, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -144,7 +148,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     meta = {"producer": "heartcv track", "model": str(model_file),
             "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
     theta0 = prior_std = None
-    input_block = None
+    input_block = full_block = None
     if fitted is not None:
         m = _fitted_patch(m, fitted, params_file)
         input_block = _input_block(m, meas, fitted, params_file, measurements)
@@ -153,7 +157,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
                            "a recorded pressure)")
         meas = _with_params(m, meas, fitted, measurements, params_file, model_file, input_block)
         if without_input:   # after the references: the same points, offsets and held-out tracks as with the input
-            input_block = input_block.without_input()
+            full_block, input_block = input_block, input_block.without_input()
             meta["without_input"] = True
             log.info("--without-input: the estimated input's harmonics pinned at zero (an ablation)")
         meta["params"] = str(params_file)
@@ -186,6 +190,14 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     adaptation = _adaptation(adapt, adapt_random_walk, adapt_window)
     try:
         drift = _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, input_block, meta)
+        if input_block is not None and not without_input:
+            input_block = _rigid_dynamics(rigid_dynamics, m, meas, fitted, input_block, references, adaptation,
+                                          heldout, drift, meta)
+        elif input_block is not None:   # the rigid motion's dynamics as the run with the input learns them
+            full_drift = drift if track_offsets != "auto" else _drift(
+                track_offsets, m, meas, fitted, references, adaptation, heldout, full_block, {})
+            input_block = _rigid_dynamics(rigid_dynamics, m, meas, fitted, full_block, references, adaptation,
+                                          heldout, full_drift, meta).without_input()
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
                    adaptation, heldout, input_block, drift, sample_heart_rate)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
@@ -230,6 +242,37 @@ def _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, inpu
              "over %d frames%s", sel.std_per_frame_m * 1e3, sel.std_per_frame_m / sel.sigma_m, sel.frames,
              "" if sel.std_per_frame_m > 0 else ": none")
     return sel.std_per_frame_m or None
+
+
+def _rigid_dynamics(mode, m, meas, fitted, input_block, references, adaptation, heldout, drift, meta):
+    """The input block the run uses: with 'refit' and parameters fitted to this very file, its rigid motion's
+    dynamics relearned from the KF's filtered motion over the fitted frames
+    (:func:`tracker.tracking.relearn_rigid_dynamics`); else the parameters file's. Records which in ``meta``."""
+    from threadpoolctl import threadpool_limits
+
+    from heartcv.tracker.tracking import relearn_rigid_dynamics
+
+    frames = meta.get("fit_frames")
+    if mode == "fit" or not frames:
+        meta["rigid_dynamics"] = {"source": "fit", "order": input_block.ar_order}
+        if mode == "refit":
+            log.info("rigid motion's dynamics: the parameters file's (fitted to another measurement file; "
+                     "nothing here to relearn them from without using the frames tracked)")
+        return input_block
+    try:
+        with threadpool_limits(1):
+            res = relearn_rigid_dynamics(m, meas, fitted.theta, input_block, frames=frames, references=references,
+                                         adaptation=adaptation, heldout=heldout, drift=drift)
+    except ValueError as exc:    # too few fitted frames for an autoregression
+        meta["rigid_dynamics"] = {"source": "fit", "order": input_block.ar_order, "reason": str(exc)}
+        log.info("rigid motion's dynamics: the parameters file's (%s)", exc)
+        return input_block
+    meta["rigid_dynamics"] = res.info()
+    log.info("rigid motion's dynamics relearned from the KF's filtered motion over the %d fitted frames: %s "
+             "(the fit's: order %d)", res.frames,
+             f"an order-{res.order} autoregression of its increments" if res.order else "a random walk",
+             res.order_before)
+    return res.block
 
 
 def _rate_prior(estimator, input_block, fitted):

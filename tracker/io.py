@@ -224,6 +224,9 @@ def _check_report_meta(meta, path, K):
         meta["field_degree"] = get_field(meta, "field_degree", "int", path, lo=0, hi=10, prefix="meta.")
     if meta.get("rigid_harmonics") is not None:
         meta["rigid_harmonics"] = get_field(meta, "rigid_harmonics", "int", path, lo=0, hi=1000, prefix="meta.")
+    rd = meta.get("rigid_dynamics")
+    if rd is not None and (not isinstance(rd, dict) or rd.get("source") not in ("refit", "fit")):
+        raise InputError(path, "a mapping with source 'refit' or 'fit' expected", "meta.rigid_dynamics")
     if meta.get("fit_frames") is not None:
         meta["fit_frames"] = get_field(meta, "fit_frames", "int", path, lo=1, hi=max(K, 1), prefix="meta.")
     ids = meta.get("heldout_points")

@@ -20,6 +20,7 @@ from .measurements import EstimateSet, MeasurementSet
 from .model import Observation, PatchModel
 
 __all__ = ["ObservedPoints", "locate_points", "run_kalman", "EstimationDiverged", "check_references", "KalmanFilter",
+           "relearn_rigid_dynamics", "RigidRelearning",
            "DriftSelection", "select_track_drift", "first_frames", "DRIFT_GRID"]
 
 log = logging.getLogger(__name__)
@@ -205,6 +206,42 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
                       translation=None if input_block is None else
                       [H.shape[1] - input_block.size + i for i in input_block.translation_states])
 
+
+
+@dataclass(frozen=True)
+class RigidRelearning:
+    """Result of :func:`relearn_rigid_dynamics`: the block with the relearned dynamics, the frames they were learned
+    from, the autoregression's order before and after, and the ridge chosen."""
+
+    block: object
+    frames: int
+    order_before: int
+    order: int
+    ridge: float
+
+    def info(self) -> dict:
+        return {"source": "refit", "frames": self.frames, "order_fit": self.order_before, "order": self.order,
+                "ridge": self.ridge}
+
+
+def relearn_rigid_dynamics(model: PatchModel, meas: MeasurementSet, theta, input_block, *, frames: int,
+                           order: int | None = None, **kalman) -> RigidRelearning:
+    """The estimated input's rigid motion with its dynamics learned from the estimator's own view of it
+    (docs/model.md §17 "Relearning the rigid motion's dynamics"): the KF at ``theta`` with ``input_block`` over the
+    first ``frames`` frames (the fitted ones), its filtered ``tau`` per frame, and the block's increment
+    autoregression and random walk refitted to that series (:func:`tracker.unknown_input.with_rigid_dynamics`;
+    ``order`` forces the order). The fit learns them from its profiled per-frame residual, which holds what the
+    per-track offsets and the filter's references take up in the estimators; the filtered series is what the
+    estimators propagate. One pass of the expectation-maximisation idea, on filtered (causal) states. ``kalman``:
+    the other arguments of :func:`run_kalman` (references, adaptation, heldout, drift)."""
+    from .unknown_input import with_rigid_dynamics
+
+    sub = first_frames(meas, frames)
+    est = run_kalman(model, sub, theta, input_block=input_block, **kalman)
+    done = est.completed_steps
+    tau = est.state_mean[:done, est.state_mean.shape[1] - input_block.size:][:, input_block.slices[1]]
+    block, ridge = with_rigid_dynamics(input_block, tau, order)
+    return RigidRelearning(block, int(done), input_block.ar_order, block.ar_order, ridge)
 
 
 DRIFT_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)

@@ -40,7 +40,8 @@ __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", 
            "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN", "Respiration", "estimate_respiration", "respiration_prior",
            "RESPIRATION_BAND_HZ", "RESPIRATION_HARMONICS", "MIN_BREATHS", "RESPIRATION_MIN_EXPLAINED",
            "fit_increment_ar", "select_increment_ar", "MAX_AR_ORDER", "field_powers", "field_basis",
-           "select_field_ar", "FIELD_RIDGES", "MAX_FIELD_DEGREE", "FIELD_DEGREE"]
+           "select_field_ar", "FIELD_RIDGES", "MAX_FIELD_DEGREE", "FIELD_DEGREE", "with_rigid_dynamics",
+           "MIN_RELEARN_FRAMES"]
 
 HARMONICS = 6
 """Harmonics of the heart rate in the estimated input and in the rigid motion. An LV pressure pulse needs them: on
@@ -734,11 +735,7 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
         fld = np.asarray(field, float).reshape(tr.shape[0], D - 3)
         resid = np.hstack([resid, fld - fld.mean(axis=0)])
     inc = np.diff(resid, axis=0)
-    ridge = 1e-6
-    if d:
-        p, ridge = select_field_ar(inc, None if rigid_ar_order is None else int(rigid_ar_order))
-    else:
-        p = select_increment_ar(inc) if rigid_ar_order is None else int(rigid_ar_order)
+    p, ridge, ar, rw_sd = _increment_dynamics(inc, d, rigid_ar_order)
     m = 2 * H + D + 6 * Hr + 6 * R + D * p
     mean0, std0, q = np.zeros(m), np.zeros(m), np.zeros(m)
     scale = float(np.sqrt(np.sum(alpha ** 2)))
@@ -747,10 +744,6 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
     mean0[:2 * H] = alpha / scale
     std0[:2 * H] = np.hypot(alpha_std / scale, drift * amp_p) + 1e-9
     q[:2 * H] = drift * amp_p * math.sqrt(dt) + 1e-12
-    rw_sd = np.std(inc, axis=0) if resid.shape[0] > 2 else np.full(D, 1e-4)
-    ar = None
-    if p:
-        ar, rw_sd = fit_increment_ar(inc, p, ridge)
     tau = slice(2 * H, 2 * H + D)
     mean0[tau] = (np.concatenate([coef[0], fld.mean(axis=0)]) if d else coef[0]) + resid[0]   # the first frame's
     std0[tau] = np.std(resid, axis=0) + 1e-9
@@ -771,6 +764,52 @@ def input_block_from_fit(frequency_hz, harmonics, dt, n_u, column, alpha, alpha_
                       float(respiration_hz) if R else 0.0, R, Hr, ar, d,
                       *((tuple(field_frame[0]), float(field_frame[2]), field_frame[1]) if d
                         else ((0.0, 0.0, 0.0), 1.0, None)), bool(centred))
+
+
+def _increment_dynamics(inc, degree: int, order: int | None = None):
+    """``(p, ridge, A (p, D, D) or None, std of the residual per coordinate (D,))`` of a rigid motion's increments
+    (K, D): the order (None: chosen, by :func:`select_increment_ar` for a translation, by :func:`select_field_ar`
+    with its ridge for a field) and the autoregression fitted to them (p = 0: the random walk, the increments'
+    standard deviation)."""
+    inc = np.asarray(inc, float)
+    ridge = 1e-6
+    if degree:
+        p, ridge = select_field_ar(inc, None if order is None else int(order))
+    else:
+        p = select_increment_ar(inc) if order is None else int(order)
+    rw_sd = np.std(inc, axis=0) if inc.shape[0] > 1 else np.full(inc.shape[1], 1e-4)
+    ar = None
+    if p:
+        ar, rw_sd = fit_increment_ar(inc, p, ridge)
+    return p, float(ridge), ar, rw_sd
+
+
+MIN_RELEARN_FRAMES = 10
+"""Fewest frames of a filtered rigid motion :func:`with_rigid_dynamics` relearns its dynamics from."""
+
+
+def with_rigid_dynamics(block: InputBlock, motion, order: int | None = None) -> tuple:
+    """The block with its rigid motion's increment dynamics learned again from ``motion`` (K, D), a per-frame
+    series of ``tau`` (the field's coefficients beyond the harmonics; e.g. an estimator's filtered states over the
+    fitted frames, :func:`tracker.tracking.relearn_rigid_dynamics`): the order and ridge chosen as
+    :func:`input_block_from_fit` chooses them (``order`` forces one), the autoregression and the random walk of
+    ``tau`` (its residual) refitted, the previous fields' prior the current one's. Everything else (oscillators,
+    priors of ``tau`` and of the oscillators, the field's frame) is kept. Returns ``(block, ridge)``; ValueError
+    for fewer than :data:`MIN_RELEARN_FRAMES` frames or a series of the wrong width."""
+    x = np.asarray(motion, float)
+    D = block.motion_dim
+    if x.ndim != 2 or x.shape[1] != D:
+        raise ValueError(f"motion: (K, {D}) expected, got {x.shape}")
+    if x.shape[0] < MIN_RELEARN_FRAMES or not np.isfinite(x).all():
+        raise ValueError(f"motion: at least {MIN_RELEARN_FRAMES} finite frames expected, got {x.shape[0]}")
+    p, ridge, ar, rw_sd = _increment_dynamics(np.diff(x, axis=0), block.field_degree, order)
+    base = block.lags.start
+    tau = block.slices[1]
+    mean0 = np.concatenate([block.mean0[:base], np.tile(block.mean0[tau], p)])
+    std0 = np.concatenate([block.std0[:base], np.tile(block.std0[tau], p)])
+    q = np.concatenate([block.noise_std[:base], np.full(D * p, 1e-12)])
+    q[tau] = rw_sd + 1e-9
+    return replace(block, mean0=mean0, std0=std0, noise_std=q, rigid_ar=ar), ridge
 
 
 MAX_AR_ORDER = 4

@@ -44,9 +44,14 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
                                     "-o", out, "--json"])
     assert res.exit_code == 0, res.output
     e = read_estimates(out)
-    p_ar = p.estimated_input["rigid_ar_order"]
-    assert 0 <= p_ar <= 4 and len(p.estimated_input["rigid_ar"]) == p_ar
+    p_fit = p.estimated_input["rigid_ar_order"]
+    assert 0 <= p_fit <= 4 and len(p.estimated_input["rigid_ar"]) == p_fit
     assert p.estimated_input["field_degree"] == 1 == e.meta["field_degree"]   # the default: an affine field
+    # track relearned the rigid motion's dynamics from the KF's filtered motion over the 90 fitted frames
+    rd = e.meta["rigid_dynamics"]
+    assert rd["source"] == "refit" and rd["frames"] == 90 and rd["order_fit"] == p_fit
+    p_ar = rd["order"]
+    assert 0 <= p_ar <= 4 and e.meta["rigid_ar_order"] == p_ar
     assert e.complete and e.meta["input_states"] == 8 * 6 + 9 + 9 * p_ar
     hold = str(tmp_path / "hold.npz")
     assert CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--estimator", "hold",
@@ -95,6 +100,8 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert doc["estimators"]["kf"]["rigid_ar_order"] == p_ar
     assert doc["estimators"]["harmonic"]["rigid_ar_order"] is None
     rigid = f"an order-{p_ar} autoregression" if p_ar else "a random walk"
+    assert f"{rigid} of its increments (relearned by heartcv track from the KF's filtered motion over the fitted " \
+           "frames, docs/model.md 17), in kf." in (tmp_path / "rep" / "summary.md").read_text()
     assert p.estimated_input["rigid_harmonics"] == 6 == e.meta["rigid_harmonics"]    # the default: --harmonics
     assert (f"Rigid motion (a degree-1 displacement field along the surface) beyond 6 harmonics of the heart rate: "
             f"{rigid}" in summary and summary.count("Rigid motion") == 1)
@@ -341,6 +348,29 @@ def test_without_input_is_an_ablation_of_the_estimated_input(tmp_path, blind_fil
     assert not (tmp_path / "x.npz").exists() and not (tmp_path / "y.npz").exists()
 
 
+def test_rigid_dynamics_fit_keeps_the_parameters_files_and_another_file_cannot_refit(tmp_path, blind_file):
+    """track --rigid-dynamics fit uses the parameters file's autoregression as it is (meta source 'fit', the fit's
+    order); parameters fitted to another measurement file are never relearned on the tracked file's frames."""
+    params = str(tmp_path / "p.yaml")
+    assert CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90",
+                                     "--rigid-ar", "2"]).exit_code == 0
+    out = str(tmp_path / "kf.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "--rigid-dynamics", "fit", "-o", out])
+    assert res.exit_code == 0, res.output
+    e = read_estimates(out)
+    assert e.meta["rigid_dynamics"] == {"source": "fit", "order": 2} and e.meta["rigid_ar_order"] == 2
+    m = read_measurements(blind_file)
+    other = str(tmp_path / "other.npz")
+    write_measurements(other, dataclasses.replace(m, positions=m.positions + 1e-7))
+    res = CliRunner().invoke(main, ["track", other, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "-o", out.replace("kf", "kf2")])
+    assert res.exit_code == 0, res.output
+    e2 = read_estimates(out.replace("kf", "kf2"))
+    assert e2.meta["rigid_dynamics"]["source"] == "fit" and e2.meta["rigid_ar_order"] == 2
+    assert "fit_frames" not in e2.meta
+
+
 def test_rigid_harmonics_sets_the_heartbeat_harmonics_of_the_rigid_motion(tmp_path, blind_file):
     """fit --rigid-harmonics 0 leaves the rigid motion to its autoregression: no heartbeat oscillators in the rigid
     part of the block (its size 2H + D + D p), the input's own harmonics kept; track records it and report says it;
@@ -365,7 +395,8 @@ def test_rigid_harmonics_sets_the_heartbeat_harmonics_of_the_rigid_motion(tmp_pa
     rep = tmp_path / "rep"
     res = CliRunner().invoke(main, ["report", out, "-o", str(rep), "--json"])
     assert res.exit_code == 0, res.output
-    assert json.loads((rep / "metrics.json").read_text())["estimators"]["kf"]["rigid_harmonics"] == 0
+    # labelled apart from a run with the harmonics (report's kf-rigid-ar)
+    assert json.loads((rep / "metrics.json").read_text())["estimators"]["kf-rigid-ar"]["rigid_harmonics"] == 0
     assert "beyond no harmonics of the heart rate: " in (rep / "summary.md").read_text()
     for args, word in ((["--rigid-harmonics", "7"], "at most --harmonics (6)"),
                        (["--harmonics", "3", "--rigid-harmonics", "4"], "at most --harmonics (3)")):

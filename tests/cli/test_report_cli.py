@@ -253,7 +253,8 @@ def test_report_meta_entries_are_checked(run, tmp_path):
     est = read_estimates(run / "kf.npz")
     K = est.times.size
     cases = {"rigid_ar_order": [], "heart_rate_hz": [1.0], "fit_frames": K + 1, "without_input": "yes",
-             "heldout_points": ["a"], "heart_rate_source": 3, "held_parameters": 12345, "field_degree": "one"}
+             "heldout_points": ["a"], "heart_rate_source": 3, "held_parameters": 12345, "field_degree": "one",
+             "rigid_harmonics": "six", "rigid_dynamics": 5}
     for key, bad in cases.items():
         path = tmp_path / f"bad_{key}.npz"
         write_estimates(path, est, dict(est.meta, **{key: bad}))
