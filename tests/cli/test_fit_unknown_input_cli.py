@@ -236,7 +236,8 @@ def test_fit_sees_a_breath_and_the_ge_samples_it(tmp_path, blind_file):
     kf, ge = runs["kf"][1], runs["ge"][1]
     D = 9                                                    # the default rigid motion: an affine field
     assert p.estimated_input["field_degree"] == 1
-    assert kf.meta["input_states"] == 8 * 6 + D + 6 * 2 + D * p.estimated_input["rigid_ar_order"]
+    assert kf.meta["rigid_dynamics"]["source"] == "refit"      # track relearned the field's autoregression
+    assert kf.meta["input_states"] == 8 * 6 + D + 6 * 2 + D * kf.meta["rigid_ar_order"]
     assert kf.respiration_rate is None
     assert kf.meta["respiration_rate_hz"] == resp["frequency_hz"] == runs["kf"][2]["respiration_rate_hz"]
     assert ge.respiration_rate.shape == (ge.times.size, 2)
