@@ -250,29 +250,33 @@ def _rigid_dynamics(mode, m, meas, fitted, input_block, references, adaptation, 
     (:func:`tracker.tracking.relearn_rigid_dynamics`); else the parameters file's. Records which in ``meta``."""
     from threadpoolctl import threadpool_limits
 
-    from heartcv.tracker.tracking import relearn_rigid_dynamics
+    from heartcv.tracker.tracking import EstimationDiverged, relearn_rigid_dynamics
+    from heartcv.tracker.unknown_input import MIN_RELEARN_FRAMES
 
     frames = meta.get("fit_frames")
-    if mode == "fit" or not frames:
-        meta["rigid_dynamics"] = {"source": "fit", "order": input_block.ar_order}
-        if mode == "refit":
-            log.info("rigid motion's dynamics: the parameters file's (fitted to another measurement file; "
-                     "nothing here to relearn them from without using the frames tracked)")
-        return input_block
-    try:
-        with threadpool_limits(1):
-            res = relearn_rigid_dynamics(m, meas, fitted.theta, input_block, frames=frames, references=references,
-                                         adaptation=adaptation, heldout=heldout, drift=drift)
-    except ValueError as exc:    # too few fitted frames for an autoregression
-        meta["rigid_dynamics"] = {"source": "fit", "order": input_block.ar_order, "reason": str(exc)}
-        log.info("rigid motion's dynamics: the parameters file's (%s)", exc)
-        return input_block
-    meta["rigid_dynamics"] = res.info()
-    log.info("rigid motion's dynamics relearned from the KF's filtered motion over the %d fitted frames: %s "
-             "(the fit's: order %d)", res.frames,
-             f"an order-{res.order} autoregression of its increments" if res.order else "a random walk",
-             res.order_before)
-    return res.block
+    reason = ("fitted to another measurement file: nothing here to relearn them from without using the frames "
+              "tracked" if not frames else f"{frames} fitted frames, fewer than {MIN_RELEARN_FRAMES}"
+              if frames < MIN_RELEARN_FRAMES else None)
+    if mode == "refit" and reason is None:
+        try:
+            with threadpool_limits(1):
+                res = relearn_rigid_dynamics(m, meas, fitted.theta, input_block, frames=frames,
+                                             references=references, adaptation=adaptation, heldout=heldout,
+                                             drift=drift)
+        except EstimationDiverged as exc:   # the run itself will say so, with its own partial file
+            reason = f"the KF over the fitted frames diverged at step {exc.step}"
+        else:
+            meta["rigid_dynamics"] = res.info()
+            log.info("rigid motion's dynamics relearned from the KF's filtered motion over the %d fitted frames: %s "
+                     "(the fit's: order %d)", res.frames,
+                     f"an order-{res.order} autoregression of its increments" if res.order else "a random walk",
+                     res.order_before)
+            return res.block
+    meta["rigid_dynamics"] = {"source": "fit", "order": input_block.ar_order}
+    if mode == "refit":
+        meta["rigid_dynamics"]["reason"] = reason
+        log.info("rigid motion's dynamics: the parameters file's (%s)", reason)
+    return input_block
 
 
 def _rate_prior(estimator, input_block, fitted):
