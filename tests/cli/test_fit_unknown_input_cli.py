@@ -372,19 +372,25 @@ def test_rigid_dynamics_fit_keeps_the_parameters_files_and_another_file_cannot_r
     assert "fit_frames" not in e2.meta
 
 
+def _fit_block(tmp_path, blind_file, *options):
+    """``heartcv fit`` of the blind recording's first 90 frames with ``options``: ``(parameters file, --json
+    summary, estimated_input entry, its InputBlock)``."""
+    from heartcv.tracker.unknown_input import InputBlock
+
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90", *options,
+                                    "--json"])
+    assert res.exit_code == 0, res.output
+    entry = read_parameters(params).estimated_input
+    return params, json.loads(res.stdout), entry, InputBlock.from_dict(entry)
+
+
 def test_rigid_harmonics_sets_the_heartbeat_harmonics_of_the_rigid_motion(tmp_path, blind_file):
     """fit --rigid-harmonics 0 leaves the rigid motion to its autoregression: no heartbeat oscillators in the rigid
     part of the block (its size 2H + D + D p), the input's own harmonics kept; track records it and report says it;
     more than --harmonics, or with a recorded pressure, is refused (exit 2) writing nothing."""
-    from heartcv.tracker.unknown_input import InputBlock
-
-    params = str(tmp_path / "p.yaml")
-    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90",
-                                    "--rigid-harmonics", "0", "--json"])
-    assert res.exit_code == 0, res.output
-    assert json.loads(res.stdout)["rigid_harmonics"] == 0
-    entry = read_parameters(params).estimated_input
-    blk = InputBlock.from_dict(entry)
+    params, summary, entry, blk = _fit_block(tmp_path, blind_file, "--rigid-harmonics", "0")
+    assert summary["rigid_harmonics"] == 0
     assert blk.rigid_harmonics == 0 and blk.harmonics == 6 and len(entry["amplitudes_pa"]) == 12
     assert blk.size == 2 * 6 + 9 + 9 * blk.ar_order
     out = str(tmp_path / "kf.npz")
@@ -419,15 +425,8 @@ def test_field_degree_gives_a_field_block_that_track_uses(tmp_path, blind_file):
     axes are not orthonormal is refused by track (exit 2 naming estimated_input and field_axes), writing nothing."""
     import yaml
 
-    from heartcv.tracker.unknown_input import InputBlock
-
-    params = str(tmp_path / "p.yaml")
-    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", params, "--frames", "90",
-                                    "--field-degree", "1", "--json"])
-    assert res.exit_code == 0, res.output
-    assert json.loads(res.stdout)["field_degree"] == 1
-    entry = read_parameters(params).estimated_input
-    blk = InputBlock.from_dict(entry)
+    params, summary, entry, blk = _fit_block(tmp_path, blind_file, "--field-degree", "1")
+    assert summary["field_degree"] == 1
     assert blk.field_degree == 1 and blk.motion_dim == 9 and blk.field_scale > 0
     np.testing.assert_allclose(np.asarray(blk.field_axes) @ np.asarray(blk.field_axes).T, np.eye(2), atol=1e-9)
     assert blk.rigid_ar.shape[1:] == (9, 9)
