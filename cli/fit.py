@@ -202,6 +202,9 @@ def _observed_patch(rig_meas, m, output):
     from heartcv.tracker.registration import registration_to_dict, to_patch_frame
 
     op = fit_observed_patch(rig_meas, m.config.geometry)
+    if not op.registration.converged:
+        raise StageFailed(f"fitting a patch to the observed surface failed ({op.registration.message}); nothing "
+                          f"written to {output}")
     info = op.info()
     log.info("patch fitted to the observed surface: %.1f x %.1f mm, radii %.0f and %.0f mm, %d points on it, %d "
              "dropped, surface RMS %.2f mm", 1e3 * info["length_m"], 1e3 * info["width_m"],

@@ -18,7 +18,10 @@ from the points' reference positions (docs/model.md "Patch fitted to the observe
    about the apex, times :data:`MARGIN`: the clamped rim of the model lies outside the view, as the heart around
    the view is not clamped either. The model keeps the model file's node counts, so its resolution follows the
    patch's size.
-4. **Pose refinement** of the surface's distances (the trimmed soft-L1 fit of :mod:`tracker.registration`).
+4. **Pose refinement** of the surface's distances (the trimmed soft-L1 fit of :mod:`tracker.registration`) over
+   the patch's depth, tilt and spin about its normal (:data:`REFINED_DOF`). Its in-plane position stays where
+   steps 2-3 centred it on the observed region: the distances do not determine a slide along a nearly flat
+   direction, and a free fit drifted there until no point was left on the patch.
 
 Points whose reference falls off the patch (beyond the extent, or farther than a quarter of the thickness from the
 surface) are dropped and counted.
@@ -45,6 +48,12 @@ MARGIN = 2.0
 QUANTILE = 0.02
 """The observed region: the 2-98 % range of the points' in-plane coordinates (a few stray points do not widen it)."""
 MIN_RADIUS_FACTOR = 0.5
+REFINED_DOF = np.array([0, 1, 2, 4])
+"""Pose coordinates the surface fit refines (:data:`tracker.registration.ALL_DOF`'s order: rotation vector x, y, z,
+translation x, y, z in the patch frame): the rotations about the apex and the translation along the normal. The
+in-plane translation is left out: along a direction whose radius is many times the view (a cylinder's axis) the
+surface's distances do not change with it, and the soft-L1 fit then slid the patch off the observed region (a
+real sequence's later half, 0 of 255 points left on the patch; ``tests/tracker/test_unknown_input.py``)."""
 MAX_RADIUS_FACTOR = 20.0
 
 
@@ -193,7 +202,7 @@ def fit_observed_patch(meas: MeasurementSet, template: PatchGeometry, *, frames:
     g = replace(template, length=float(length), width=float(width), radius_long=r1, radius_circ=r2)
     T = _pose(R2, -R2 @ apex)
     size_thick = min(g.thickness, 0.25 * min(length, width))
-    T = _fit_surface(T, X, g, taus=(size_thick, 0.5 * size_thick))
+    T = _fit_surface(T, X, g, taus=(size_thick, 0.5 * size_thick), free=REFINED_DOF)
     # on-patch flags for every point of the set
     std = g.from_patch(_apply(T, meas.reference))
     max_depth = 0.25 * g.thickness
@@ -204,8 +213,10 @@ def fit_observed_patch(meas: MeasurementSet, template: PatchGeometry, *, frames:
     sel[idx] = True
     used = on & sel
     if used.sum() < MIN_POINTS:
-        raise InputError(None, f"{int(used.sum())} points lie on the fitted patch: at least {MIN_POINTS} are "
-                               "needed", "positions")
+        reg = Registration(T, math.nan, on, int(used.sum()), False,
+                           f"{int(used.sum())} of {idx.size} points lie on the patch fitted to the observed surface: "
+                           f"at least {MIN_POINTS} are needed")
+        return ObservedPatch(g, reg, extent, kappa)
     rms = float(np.sqrt(np.mean(std[used, 2] ** 2)))
     reg = Registration(T, rms, on, int(used.sum()), True,
                        f"patch fitted to the observed surface ({int(on.sum())} points on it, "

@@ -10,6 +10,7 @@ import pytest
 
 from heartcv.cli.main import main
 from heartcv.tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
+from heartcv.tracker.measurements import MeasurementSet
 from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
@@ -167,6 +168,35 @@ def test_fit_exits_1_without_a_heartbeat(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["fit", flat, "--model", PAPER, "-o", str(tmp_path / "p.yaml")])
     assert res.exit_code == 1 and "no periodic motion" in res.output
     assert not (tmp_path / "p.yaml").exists()
+
+
+def test_fit_exits_1_when_the_observed_patch_holds_too_few_points(tmp_path, monkeypatch):
+    """A patch fitted to the observed surface that leaves too few points on it is the fit's failure, not a fault of
+    the measurement file: exit 1 with the reason, no traceback, nothing written (the core's answer stood in by a
+    registration with ``converged`` False)."""
+    import heartcv.tracker.patch_fit as patch_fit
+
+    rng = np.random.default_rng(0)
+    n, K = 50, 8
+    X = np.c_[rng.uniform(-0.008, 0.008, (n, 2)), np.full(n, 0.026)]
+    rig = MeasurementSet(np.arange(K) / 25.0, np.arange(n), np.broadcast_to(X, (K, n, 3)).copy(),
+                         np.broadcast_to(np.eye(3) * 1e-8, (K, n, 3, 3)).copy(), X, np.zeros((K, 0)), (), (), "rig")
+    path = str(tmp_path / "rig.npz")
+    write_measurements(path, rig)
+    real = patch_fit.fit_observed_patch
+
+    def failing(*args, **kwargs):
+        op = real(*args, **kwargs)
+        reg = dataclasses.replace(op.registration, converged=False, message="2 of 50 points lie on the patch")
+        return dataclasses.replace(op, registration=reg)
+
+    monkeypatch.setattr(patch_fit, "fit_observed_patch", failing)
+    out = tmp_path / "p.yaml"
+    res = CliRunner().invoke(main, ["fit", path, "--model", PAPER, "-o", str(out), "--input", "estimate",
+                                    "--patch", "observed"])
+    assert res.exit_code == 1, res.output
+    assert "2 of 50 points lie on the patch" in res.output and "Traceback" not in res.output
+    assert not out.exists()
 
 
 def test_fit_input_options_are_checked(tmp_path, blind_file):
