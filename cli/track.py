@@ -341,7 +341,7 @@ def _heldout(m, meas, fraction, seed, measurements):
         keep = locate_points(m, meas).keep
     except InputError as exc:
         raise exc.in_file(measurements) from None
-    held = holdout_points(keep, fraction, np.random.default_rng(seed))
+    held = holdout_points(keep, fraction, np.random.default_rng(seed), ids=meas.point_ids[keep])
     if held.size == keep.size or held.size == 0:
         raise BadInput(f"--holdout {fraction:g}: {held.size} of {keep.size} tracks; leave some in and some out")
     log.info("%d of %d tracks held out of the updates (seed %d)", held.size, keep.size, seed)

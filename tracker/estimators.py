@@ -127,15 +127,37 @@ def block_diag_R(cov_k: np.ndarray) -> np.ndarray:
     return R.reshape(3 * P, 3 * P)
 
 
-def holdout_points(candidates, fraction: float, rng: np.random.Generator) -> np.ndarray:
-    """The held-out points: ``round(fraction * n)`` of the ``n`` candidates (indices into a measurement set, in
-    increasing order) drawn without replacement by ``rng``, sorted. Every estimator given the same candidates,
-    fraction and seed holds out the same points."""
-    c = np.sort(np.asarray(candidates, int))
+def _mix64(x) -> np.ndarray:
+    """splitmix64's finaliser (Steele, Lea & Flood 2014), elementwise on uint64: a bijection that scatters
+    neighbouring integers over the whole range."""
+    z = np.asarray(x, np.uint64).copy()
+    with np.errstate(over="ignore"):
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def holdout_points(candidates, fraction: float, rng: np.random.Generator, ids=None) -> np.ndarray:
+    """The held-out points: ``round(fraction * n)`` of the ``n`` candidates (indices into a measurement set), sorted.
+
+    Each candidate gets a key from its identifier (``ids``, the candidates' point ids in the same order; default the
+    candidates themselves) and one 64-bit salt drawn from ``rng``; those with the smallest keys are held out. So a
+    track is held out or not whatever the other candidates are: a run whose candidates differ by one track (a
+    registration that drops one more point) holds out the same tracks but at most one, and its held-out error
+    compares. Every estimator given the same candidates, fraction and seed holds out the same points."""
+    c = np.asarray(candidates, int).reshape(-1)
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f"holdout: a fraction in [0, 1) expected, got {fraction}")
+    key_ids = c if ids is None else np.asarray(ids, int).reshape(-1)
+    if key_ids.shape != c.shape:
+        raise ValueError(f"holdout: {c.size} ids expected, got {key_ids.size}")
     n = int(round(fraction * c.size))
-    return np.sort(rng.choice(c, size=n, replace=False)) if n else np.zeros(0, int)
+    salt = rng.integers(0, np.iinfo(np.int64).max, dtype=np.int64, endpoint=True)
+    if not n:
+        return np.zeros(0, int)
+    keys = _mix64(key_ids.astype(np.int64).view(np.uint64) ^ np.uint64(salt))
+    order = np.lexsort((key_ids, keys))
+    return np.sort(c[order[:n]])
 
 
 NEIGHBOURS = 8
