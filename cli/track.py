@@ -155,6 +155,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         if without_input and input_block is None:
             raise BadInput(f"--without-input: {params_file} holds no estimated input (estimated_input; the fit had "
                            "a recorded pressure)")
+        meas_in = meas
         meas = _with_params(m, meas, fitted, measurements, params_file, model_file, input_block)
         if without_input:   # after the references: the same points, offsets and held-out tracks as with the input
             full_block, input_block = input_block, input_block.without_input()
@@ -173,6 +174,9 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     heldout = _heldout(m, meas, holdout, seed, measurements)
     if holdout:
         meta.update(holdout=holdout, seed=seed)
+        if fitted is not None and meas.meta.get("late_points"):
+            meas = _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file,
+                                              model_file, full_block or input_block, meta)
     rate = _fitted_heart_rate(fitted)
     if estimator in BASELINES:
         use_fit = estimator == "harmonic" and heart_rate_hz is None and rate
@@ -421,26 +425,30 @@ def _input_block(m, meas, fitted, params_file, measurements):
     return block
 
 
-def _with_params(m, meas, fitted, measurements, params_file, model_file, input_block=None):
+def _with_params(m, meas, fitted, measurements, params_file, model_file, input_block=None, causal_ids=None):
     """The measurement set as the fit saw it: the stored registration applied to a rig-frame file, whose
-    birth-frame references are then replaced by the fit's undeformed offsets."""
+    birth-frame references are then replaced by the fit's undeformed offsets (``causal_ids``: late points whose
+    references come from their first frames only, :func:`tracker.fit.undeformed_references`; then quiet, a second
+    pass)."""
     from heartcv.tracker.files import InputError
     from heartcv.tracker.fit import undeformed_references
     from heartcv.tracker.io import file_hash
     from heartcv.tracker.registration import apply_stored_registration
 
+    quiet = causal_ids is not None
     fitted_model = (fitted.meta.get("inputs_hash") or {}).get("model")
-    if fitted_model is not None and fitted_model != file_hash(model_file):
+    if not quiet and fitted_model is not None and fitted_model != file_hash(model_file):
         log.warning("%s was fitted with another model file than %s", params_file, model_file)
     if meas.frame != "rig":
-        if fitted.registration is not None:
+        if fitted.registration is not None and not quiet:
             log.warning("%s holds a registration but %s is in the patch frame: not applied", params_file,
                         measurements)
         if input_block is None:
             return meas
         # an estimated input has no mean (the offsets took it): references from the fit's offsets
         try:
-            return undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block)
+            return undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block,
+                                         causal_ids=causal_ids)
         except InputError as exc:
             raise exc.in_file(measurements) from None
     if fitted.registration is None:
@@ -452,9 +460,12 @@ def _with_params(m, meas, fitted, measurements, params_file, model_file, input_b
         raise exc.in_file(params_file) from None
     # measured references are birth-frame (deformed) positions: use the fit's undeformed offsets
     try:
-        meas = undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block)
+        meas = undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block,
+                                     causal_ids=causal_ids)
     except InputError as exc:
         raise exc.in_file(measurements) from None
+    if quiet:
+        return meas
     if meas.meta.get("late_points"):
         log.info("%d points born after the fit's %d frames: offsets from their own frames",
                  len(meas.meta["late_points"]), fitted.frames)
@@ -462,6 +473,32 @@ def _with_params(m, meas, fitted, measurements, params_file, model_file, input_b
         log.info("%d points off the patch or seen in fewer than two frames were left out",
                  len(meas.meta["dropped_points"]))
     return meas
+
+
+def _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file, model_file,
+                               input_block, meta):
+    """``meas`` with the held-out tracks born after the fitted frames given references from their first frames
+    only (their later measurements never enter; every other point's reference unchanged). Records their ids in
+    ``meta['heldout_late_references']``; keeps ``meas`` (with a warning) if that changed the points kept."""
+    import numpy as np
+
+    from heartcv.tracker.fit import LATE_REFERENCE_FRAMES
+    from heartcv.tracker.tracking import locate_points
+
+    late = np.intersect1d(np.asarray(meas.point_ids)[heldout], np.asarray(meas.meta["late_points"], np.int64))
+    if not late.size:
+        return meas
+    again = _with_params(m, meas_in, fitted, measurements, params_file, model_file, input_block,
+                         causal_ids=late)
+    if not (np.array_equal(again.point_ids, meas.point_ids)
+            and np.array_equal(locate_points(m, again).keep, locate_points(m, meas).keep)):
+        log.warning("held-out tracks born after the fitted frames keep references from all their frames: from "
+                    "their first %d the points on the patch would change", LATE_REFERENCE_FRAMES)
+        return meas
+    meta["heldout_late_references"] = {"points": [int(i) for i in late], "frames": LATE_REFERENCE_FRAMES}
+    log.info("%d held-out tracks born after the fitted frames: references from their first %d frames only",
+             late.size, LATE_REFERENCE_FRAMES)
+    return again
 
 
 def _prior(m, fitted, params_file):

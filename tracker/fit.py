@@ -748,6 +748,10 @@ def tracking_prior(cfg, fitted: FitResult):
 REFERENCE_MODEL_ERROR = 0.1
 """Default relative model error of :func:`undeformed_references` (10 % of a point's model displacement)."""
 
+LATE_REFERENCE_FRAMES = 2
+"""Frames a held-out point born after the fitted window takes its reference from (:func:`undeformed_references`
+``causal_ids``): its first two seen, the fewest a reference takes, so its later measurements never enter."""
+
 
 def _subset_points(meas: MeasurementSet, idx) -> MeasurementSet:
     """The set restricted to the points ``idx`` (indices into its points), every frame."""
@@ -782,7 +786,8 @@ def _observed_translation(model, meas, keep, offsets, theta, kw) -> np.ndarray:
 
 
 def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None,
-                          relative_model_error: float = REFERENCE_MODEL_ERROR, input_block=None) -> MeasurementSet:
+                          relative_model_error: float = REFERENCE_MODEL_ERROR, input_block=None,
+                          causal_ids=None) -> MeasurementSet:
     """The measurement set with each point's ``reference`` replaced by its undeformed position at ``theta``.
 
     A measured point's reference (``heartcv measure``) is its position in the frame it was born in, which is
@@ -806,6 +811,10 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
     those of :class:`UnknownInputProblem` (input and rigid motion profiled, no model-error weighting) and the late
     points' those under the block's mean input continued over the sequence and the rigid translation that the
     window's points show in each frame (:func:`_observed_translation`), not one extrapolated from the window.
+
+    ``causal_ids``: point ids whose late references come from their first :data:`LATE_REFERENCE_FRAMES` seen frames
+    only (``heartcv track --holdout``'s held-out tracks, whose measurements must not enter after those; every other
+    late point keeps all its frames, which predict the rendered scenes' few late points better).
     """
     import dataclasses
 
@@ -828,6 +837,13 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
         candidates = candidates[seen]
         if candidates.size:
             sub = _subset_points(meas, candidates)
+            causal = np.isin(sub.point_ids, np.asarray([] if causal_ids is None else causal_ids, np.int64))
+            if causal.any():
+                seen_so_far = np.cumsum(np.isfinite(sub.positions[..., 0]), axis=0)
+                after = (seen_so_far > LATE_REFERENCE_FRAMES) & causal[None, :]
+                pos, cov = sub.positions.copy(), sub.covariances.copy()
+                pos[after], cov[after] = np.nan, np.nan
+                sub = dataclasses.replace(sub, positions=pos, covariances=cov)
             if late_kw:
                 late_kw["translation"] = _observed_translation(model, meas, keep, offsets, theta, late_kw)
             late_prob = FitProblem(model, sub, None, **late_kw)

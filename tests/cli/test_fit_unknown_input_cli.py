@@ -199,6 +199,42 @@ def test_fit_exits_1_when_the_observed_patch_holds_too_few_points(tmp_path, monk
     assert not out.exists()
 
 
+def test_track_gives_held_out_late_tracks_references_from_their_first_frames(tmp_path, blind_file):
+    """Tracks born after the fitted frames that --holdout keeps out get references from their first two frames
+    (meta.heldout_late_references lists exactly the held-out ones among the late); their later measurements then
+    do not change the run (moved by 1 mm after frame born + 2: the same predictions of every point; with references
+    from all their frames they moved). The parameters file's rigid dynamics in both runs: a file other than the
+    fitted one is never relearned from."""
+    meas = read_measurements(blind_file)
+    born = 100
+    late = np.arange(0, meas.n_points, 2)
+    pos, cov = meas.positions.copy(), meas.covariances.copy()
+    pos[:born, late], cov[:born, late] = np.nan, np.nan
+    path = str(tmp_path / "late.npz")
+    write_measurements(path, dataclasses.replace(meas, positions=pos, covariances=cov))
+    params = str(tmp_path / "p.yaml")
+    assert CliRunner().invoke(main, ["fit", path, "--model", PAPER, "-o", params, "--frames", "90"]).exit_code == 0
+
+    def run(p, out):
+        res = CliRunner().invoke(main, ["track", p, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                        "--holdout", "0.5", "--seed", "3", "--rigid-dynamics", "fit", "-o", out])
+        assert res.exit_code == 0, res.output
+        return read_estimates(out)
+
+    e = run(path, str(tmp_path / "e.npz"))
+    held = set(e.meta["heldout_points"])
+    late_ids = {int(meas.point_ids[i]) for i in late}
+    expected = sorted(held & late_ids)
+    assert expected and e.meta["heldout_late_references"] == {"points": expected, "frames": 2}
+    moved = pos.copy()
+    held_late = [int(np.flatnonzero(meas.point_ids == i)[0]) for i in expected]
+    moved[born + 2:, held_late] += 1e-3          # their later measurements: in no update and no reference now
+    path2 = str(tmp_path / "late2.npz")
+    write_measurements(path2, dataclasses.replace(meas, positions=moved, covariances=cov))
+    e2 = run(path2, str(tmp_path / "e2.npz"))
+    np.testing.assert_allclose(e2.predictions, e.predictions, rtol=0, atol=1e-12)
+
+
 def test_fit_input_options_are_checked(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "p.yaml"),
                                     "--input", "recorded"])

@@ -407,6 +407,47 @@ def test_points_born_after_the_fit_window_get_offsets_from_their_own_frames(pape
     assert np.abs(birth_ref[late] - meas.reference[late]).max() > 3 * err.max()     # the test has power
 
 
+def test_held_out_late_points_take_references_from_their_first_frames_only(paper_model):
+    """``causal_ids`` (heartcv track's held-out tracks): those late points' references come from their first two
+    seen frames, so moving their later measurements by 1 mm changes nothing, while moving the second frame does;
+    the other late point keeps all its frames (its reference moves with them) and the window's points are
+    untouched."""
+    import dataclasses
+
+    from heartcv.tracker.fit import undeformed_references
+
+    sim, meas = _noise_only(paper_model, 2.0, 13)
+    pos = meas.positions.copy()
+    cov = meas.covariances.copy()
+    late = [0, 5, 9]
+    pos[:40, late] = np.nan
+    cov[:40, late] = np.nan
+    m2 = dataclasses.replace(meas, positions=pos, covariances=cov)
+    causal = [int(meas.point_ids[0]), int(meas.point_ids[5])]
+
+    def refs(p):
+        out = undeformed_references(paper_model, dataclasses.replace(m2, positions=p), paper_model.config.theta,
+                                    frames=20, causal_ids=causal)
+        return {int(i): r for i, r in zip(out.point_ids, out.reference, strict=True)}
+
+    base = refs(pos)
+    moved = pos.copy()
+    moved[42:, late] += 1e-3
+    after = refs(moved)
+    for i in causal:
+        np.testing.assert_array_equal(after[i], base[i])
+    other = int(meas.point_ids[9])
+    assert np.abs(after[other] - base[other]).max() > 5e-4          # all its frames: it follows them
+    for i in set(base) - {other, *causal}:
+        np.testing.assert_array_equal(after[i], base[i])
+    moved[41, late] += 1e-3
+    second = refs(moved)
+    assert all(np.abs(second[i] - base[i]).max() > 2e-4 for i in causal)
+    # without causal_ids every late point uses all its frames (the default, as heartcv fit's window points do)
+    plain = undeformed_references(paper_model, m2, paper_model.config.theta, frames=20)
+    assert not np.array_equal(plain.reference[list(plain.point_ids).index(causal[0])], base[causal[0]])
+
+
 def test_reference_offsets_with_a_model_error_rest_on_the_least_deformed_frames(paper_model):
     """With a model whose displacements are 30 % too small (E 1.3x the truth's), the fit's plain offsets absorb
     the displacement error averaged over the frames; with the relative model error, the offsets rest on the
