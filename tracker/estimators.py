@@ -144,7 +144,8 @@ def holdout_points(candidates, fraction: float, rng: np.random.Generator, ids=No
     candidates themselves) and one 64-bit salt drawn from ``rng``; those with the smallest keys are held out. So a
     track is held out or not whatever the other candidates are: a run whose candidates differ by one track (a
     registration that drops one more point) holds out the same tracks but for one or two (the count follows n),
-    and its held-out error compares. Every estimator given the same candidates, fraction and seed holds out the same points."""
+    and its held-out error compares. Every estimator given the same candidates, fraction and seed holds out the
+    same points."""
     c = np.asarray(candidates, int).reshape(-1)
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f"holdout: a fraction in [0, 1) expected, got {fraction}")
