@@ -54,6 +54,43 @@ def test_decoupled_update_equals_the_joint_update_of_one_frame():
         TrackOffsets(3, 0.0)
 
 
+def test_update_over_the_seen_rows_only_equals_the_joint_update():
+    """``run_filter`` hands the update only the rows of the points seen (never the 3P x 3P covariance of all the
+    kept points): with ``points=`` the offsets' update is the joint Kalman update of [x; b] over all the points
+    (brute force, NaN rows dropped), to 1e-12; unseen points keep their offsets; a point seen in two of its
+    coordinates is refused."""
+    rng = np.random.default_rng(4)
+    n, P = 5, 7
+    x = GaussianState(rng.standard_normal(n), _spd(rng, n, 1.0))
+    H = rng.standard_normal((3 * P, n))
+    blocks = np.stack([_spd(rng, 3, 0.3) for _ in range(P)])
+    offsets = TrackOffsets(P, 0.1)
+    offsets.mean = rng.standard_normal(3 * P)
+    offsets.cov = np.stack([_spd(rng, 3, 0.5) for _ in range(P)])
+    b0, Pb0 = offsets.mean.copy(), offsets.cov.copy()
+    y = rng.standard_normal(3 * P)
+    off = rng.standard_normal(3 * P)
+    seen = np.array([1, 4, 5])
+    rows = np.zeros(3 * P, bool)
+    rows[(3 * seen[:, None] + np.arange(3)).ravel()] = True
+    res = update(x, y[rows], H[rows], _block_diag(blocks[seen] + Pb0[seen]), (off + b0)[rows])
+    offsets.update(res, points=seen)
+    z = GaussianState(np.concatenate([x.mean, b0]),
+                      np.block([[x.cov, np.zeros((n, 3 * P))], [np.zeros((3 * P, n)), _block_diag(Pb0)]]))
+    joint = update(z, np.where(rows, y, np.nan), np.hstack([H, np.eye(3 * P)]), _block_diag(blocks), off)
+    np.testing.assert_allclose(res.state.mean, joint.state.mean[:n], atol=1e-12)
+    np.testing.assert_allclose(res.state.cov, joint.state.cov[:n, :n], atol=1e-12)
+    np.testing.assert_allclose(offsets.mean, joint.state.mean[n:], atol=1e-12)
+    Cb = joint.state.cov[n:, n:]
+    for p in range(P):
+        np.testing.assert_allclose(offsets.cov[p], Cb[3 * p:3 * p + 3, 3 * p:3 * p + 3], atol=1e-12)
+    unseen = np.setdiff1d(np.arange(P), seen)
+    np.testing.assert_array_equal(offsets.mean.reshape(-1, 3)[unseen], b0.reshape(-1, 3)[unseen])
+    np.testing.assert_array_equal(offsets.cov[unseen], Pb0[unseen])
+    with pytest.raises(ValueError, match="all three coordinates"):
+        offsets.update(res, points=seen[:2])
+
+
 def _block_diag(blocks):
     P = blocks.shape[0]
     out = np.zeros((3 * P, 3 * P))
