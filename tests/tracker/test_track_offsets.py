@@ -37,16 +37,7 @@ def test_decoupled_update_equals_the_joint_update_of_one_frame():
     off = rng.standard_normal(3 * P)
     res = update(x, y, H, R + offsets.covariance(), off + offsets.mean)
     offsets.update(res)
-    # the joint update
-    z = GaussianState(np.concatenate([x.mean, b0]),
-                      np.block([[x.cov, np.zeros((n, 3 * P))], [np.zeros((3 * P, n)), _block_diag(Pb0)]]))
-    joint = update(z, y, np.hstack([H, np.eye(3 * P)]), R, off)
-    np.testing.assert_allclose(res.state.mean, joint.state.mean[:n], atol=1e-12)
-    np.testing.assert_allclose(res.state.cov, joint.state.cov[:n, :n], atol=1e-12)
-    np.testing.assert_allclose(offsets.mean, joint.state.mean[n:], atol=1e-12)
-    Cb = joint.state.cov[n:, n:]
-    for p in range(P):
-        np.testing.assert_allclose(offsets.cov[p], Cb[3 * p:3 * p + 3, 3 * p:3 * p + 3], atol=1e-12)
+    _assert_joint_update(x, b0, Pb0, y, H, R, off, res, offsets)
     np.testing.assert_array_equal(offsets.mean[6:9], b0[6:9])
     offsets.predict()
     np.testing.assert_allclose(offsets.cov[2], Pb0[2] + 0.01 * np.eye(3), atol=1e-15)
@@ -75,20 +66,27 @@ def test_update_over_the_seen_rows_only_equals_the_joint_update():
     rows[(3 * seen[:, None] + np.arange(3)).ravel()] = True
     res = update(x, y[rows], H[rows], _block_diag(blocks[seen] + Pb0[seen]), (off + b0)[rows])
     offsets.update(res, points=seen)
+    _assert_joint_update(x, b0, Pb0, np.where(rows, y, np.nan), H, _block_diag(blocks), off, res, offsets)
+    unseen = np.setdiff1d(np.arange(P), seen)
+    np.testing.assert_array_equal(offsets.mean.reshape(-1, 3)[unseen], b0.reshape(-1, 3)[unseen])
+    np.testing.assert_array_equal(offsets.cov[unseen], Pb0[unseen])
+    with pytest.raises(ValueError, match="all three coordinates"):
+        offsets.update(res, points=seen[:2])
+
+
+def _assert_joint_update(x, b0, Pb0, y, H, R, off, res, offsets):
+    """The brute-force joint Kalman update of [x; b] (prior without cross-covariance, NaN rows of y dropped) against
+    the decoupled one (``res``, ``offsets`` after their update): x's mean and covariance, b's mean and 3 x 3 blocks."""
+    n, P = x.mean.size, Pb0.shape[0]
     z = GaussianState(np.concatenate([x.mean, b0]),
                       np.block([[x.cov, np.zeros((n, 3 * P))], [np.zeros((3 * P, n)), _block_diag(Pb0)]]))
-    joint = update(z, np.where(rows, y, np.nan), np.hstack([H, np.eye(3 * P)]), _block_diag(blocks), off)
+    joint = update(z, y, np.hstack([H, np.eye(3 * P)]), R, off)
     np.testing.assert_allclose(res.state.mean, joint.state.mean[:n], atol=1e-12)
     np.testing.assert_allclose(res.state.cov, joint.state.cov[:n, :n], atol=1e-12)
     np.testing.assert_allclose(offsets.mean, joint.state.mean[n:], atol=1e-12)
     Cb = joint.state.cov[n:, n:]
     for p in range(P):
         np.testing.assert_allclose(offsets.cov[p], Cb[3 * p:3 * p + 3, 3 * p:3 * p + 3], atol=1e-12)
-    unseen = np.setdiff1d(np.arange(P), seen)
-    np.testing.assert_array_equal(offsets.mean.reshape(-1, 3)[unseen], b0.reshape(-1, 3)[unseen])
-    np.testing.assert_array_equal(offsets.cov[unseen], Pb0[unseen])
-    with pytest.raises(ValueError, match="all three coordinates"):
-        offsets.update(res, points=seen[:2])
 
 
 def _block_diag(blocks):
