@@ -12,8 +12,10 @@ Output safety: :func:`guard_outputs` (before any work).
 from __future__ import annotations
 
 import json
+import logging
 import math
 import sys
+import time
 
 import click
 
@@ -157,12 +159,20 @@ def load_model(path):
     return build_model(read_model(path))
 
 
+PROGRESS_LOG_S = 30.0
+"""Seconds between the progress lines of a long stage whose stderr is not a terminal (a Makefile's log, a batch
+job): one INFO line ``label: done/total (percent), elapsed`` at most this often, none for a stage that ends sooner."""
+
+
 def progress(iterable, label, length=None, verbosity=0):
-    """A click progress bar on stderr (hidden with -q or when stderr is not a terminal)."""
-    show = verbosity >= 0 and sys.stderr.isatty()
-    if not show:
+    """Progress on stderr: a click progress bar on a terminal; elsewhere an INFO log line at most every
+    :data:`PROGRESS_LOG_S` seconds; nothing with -q. Iterate over what the ``with`` gives, or call its
+    ``update(n)`` (``iterable`` None: ``length`` steps counted by ``update`` only)."""
+    if verbosity < 0:
         return _Null(iterable)
-    return click.progressbar(iterable, label=label, length=length, file=sys.stderr)
+    if sys.stderr.isatty():
+        return click.progressbar(iterable, label=label, length=length, file=sys.stderr)
+    return _LogProgress(iterable, label, length)
 
 
 class _Null:
@@ -170,7 +180,41 @@ class _Null:
         self.it = it
 
     def __enter__(self):
-        return self.it
+        return self if self.it is None else self.it
 
     def __exit__(self, *a):
         return False
+
+    def update(self, n):
+        pass
+
+
+class _LogProgress:
+    """:func:`progress` where stderr is not a terminal: counts steps (by iteration or ``update``) and logs."""
+
+    def __init__(self, iterable, label, length=None):
+        self.it = iterable
+        self.label = label
+        self.length = length if length is not None else (len(iterable) if hasattr(iterable, "__len__") else None)
+        self.done = 0
+        self.start = self.last = time.monotonic()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False
+
+    def __iter__(self):
+        for item in self.it:
+            yield item
+            self.update(1)
+
+    def update(self, n):
+        self.done += n
+        now = time.monotonic()
+        if now - self.last < PROGRESS_LOG_S:
+            return
+        self.last = now
+        of = f"/{self.length} ({100.0 * self.done / self.length:.0f} %)" if self.length else ""
+        logging.getLogger("heartcv.cli").info("%s: %d%s, %.0f s", self.label, self.done, of, now - self.start)

@@ -5,11 +5,10 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-import sys
 
 import click
 
-from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model
+from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model, progress
 
 log = logging.getLogger(__name__)
 
@@ -526,17 +525,16 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
     from heartcv.tracker.joint import run_joint
     from heartcv.tracker.tracking import run_kalman
 
-    with threadpool_limits(1):  # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
+    # 168-sized matrices: one BLAS thread is far faster (docs/spec/estimator.md §7.5)
+    with threadpool_limits(1), progress(None, estimator, meas.n_frames, verbosity) as bar:
+        tick = lambda done, total: bar.update(1)  # noqa: E731
         if estimator == "kf":
             return run_kalman(m, meas, None if fitted is None else fitted.theta, joseph=joseph,
                               references=references, adaptation=adaptation, heldout=heldout,
-                              input_block=input_block, drift=drift)
-        with click.progressbar(length=meas.n_frames, label=estimator, file=sys.stderr) \
-                if verbosity >= 0 and sys.stderr.isatty() else _NoBar() as bar:
-            return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options,
-                             progress=lambda done, total: bar.update(1), references=references,
-                             adaptation=adaptation, heldout=heldout, input_block=input_block, drift=drift,
-                             rate=_rate_prior(estimator, input_block, fitted) if sample_heart_rate else None)
+                              input_block=input_block, drift=drift, progress=tick)
+        return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options, progress=tick,
+                         references=references, adaptation=adaptation, heldout=heldout, input_block=input_block,
+                         drift=drift, rate=_rate_prior(estimator, input_block, fitted) if sample_heart_rate else None)
 
 
 def _diverged(exc, estimator, meas, meta, part, output, measurements) -> str:
@@ -594,14 +592,3 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
         msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
                                 for n in summary["estimated"])
     log.info(msg)
-
-
-class _NoBar:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *a):
-        return False
-
-    def update(self, n):
-        pass

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import logging
+from typing import Callable
 
 import numpy as np
 
@@ -149,7 +150,8 @@ class KalmanFilter(Estimator):
 
 def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=False,
                points: ObservedPoints | None = None, references: str = "fixed", adaptation=None,
-               heldout=None, input_block=None, drift: float | None = None) -> EstimateSet:
+               heldout=None, input_block=None, drift: float | None = None,
+               progress: Callable[[int, int], None] | None = None) -> EstimateSet:
     """Kalman filter with fixed ``theta`` (default: the model file's) over a measurement set (the ``kf`` variant
     of :mod:`tracker.estimators`, its frame loop :func:`tracker.estimators.run_filter`).
 
@@ -203,7 +205,7 @@ def run_kalman(model: PatchModel, meas: MeasurementSet, theta=None, *, joseph=Fa
         adapt = NoiseAdaptation(0, dt, np.zeros((0, 0)), adaptation)
     return run_filter(kf, meas, GaussianState(mean0, cov0), H, obs.reference, pts.keep, u, trans,
                       np.zeros((0, 0)), joseph=joseph, meta=meta, adapt=adapt, heldout=heldout, drift=drift,
-                      translation=None if input_block is None else
+                      progress=progress, translation=None if input_block is None else
                       [H.shape[1] - input_block.size + i for i in input_block.translation_states])
 
 

@@ -174,3 +174,24 @@ def test_stiffness_schedule_shapes(paper_model):
     with pytest.raises(InputError) as exc:
         stiffness_schedule(paper_model, 1.0, "pressure", load=lambda t: -np.ones((np.size(t), 1)))
     assert exc.value.field == "stiffness_cycle.shape" and "never positive" in exc.value.reason
+
+
+def test_track_logs_progress_when_stderr_is_not_a_terminal(runner, tmp_path, monkeypatch):
+    """A long stage in a Makefile's log (stderr not a terminal) reports its progress as INFO lines, at most every
+    PROGRESS_LOG_S seconds (here 0: every frame), for the KF and the GE alike; -q silences them."""
+    from heartcv.cli import options
+
+    meas = str(tmp_path / "m.npz")
+    _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "1", "--seed", "4", "-o", meas, "--json"]))
+    monkeypatch.setattr(options, "PROGRESS_LOG_S", 0.0)
+    for estimator in ("kf", "ge"):
+        res = runner.invoke(main, ["track", meas, "--model", PAPER, "--estimator", estimator,
+                                   "-o", str(tmp_path / f"{estimator}.npz")])
+        assert res.exit_code == 0, res.output
+        lines = [ln for ln in res.stderr.splitlines() if ln.startswith(f"INFO heartcv.cli: {estimator}: ")]
+        assert len(lines) == 31, res.stderr                       # 1 s at 30 Hz: 31 frames, one line each
+        assert lines[0].startswith(f"INFO heartcv.cli: {estimator}: 1/31 (3 %), ")
+        assert lines[-1].startswith(f"INFO heartcv.cli: {estimator}: 31/31 (100 %), ")
+    res = runner.invoke(main, ["-q", "track", meas, "--model", PAPER, "--estimator", "kf",
+                               "-o", str(tmp_path / "quiet.npz")])
+    assert res.exit_code == 0 and "heartcv.cli: kf:" not in res.stderr
