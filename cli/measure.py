@@ -8,6 +8,7 @@ and writes the measurement file (and the CSV).
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 import time
 
@@ -83,6 +84,10 @@ MAX_WORKERS = 1024
               help="Pixel noise for the covariances (default: estimated from the reprojection residuals).")
 @click.option("--highpass", type=Float(0, 1000), default=3.0, show_default=True, metavar="SIGMA",
               help="Track on the high-pass image (gray minus its Gaussian blur of this sigma, px); 0 = raw gray.")
+@click.option("--size-factor", default="auto", show_default=True, metavar="auto|K",
+              help="Multiply every pixel size and threshold of the tracking (corner distance and block, window, NCC "
+                   "patch, high-pass, forward-backward, reprojection) by K; auto: 1 for sharp video, the effective "
+                   "blur of the first frames' texture in px where it exceeds 1 px (blurry or oversampled video).")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False), default=None,
               help="Render truth (truth.npz of `heartcv render sequence`): report the 3-D error of every point.")
 @click.option("--csv", "csv_file", type=click.Path(dir_okay=False), default=None,
@@ -93,7 +98,7 @@ MAX_WORKERS = 1024
 def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_camera, max_points, min_distance,
             corner_block, corner_quality, frames, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
             max_depth_std, max_reprojection, min_angle, max_gap, window, no_specular, overlay_dir, overlay_video,
-            backend, device, pixel_sigma, highpass, truth_file, csv_file, workers, as_json):
+            backend, device, pixel_sigma, highpass, size_factor, truth_file, csv_file, workers, as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
     name is the same instant) seen by the cameras of RIG, and write their positions and covariances per frame.
 
@@ -150,20 +155,34 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
 
     t_start = time.perf_counter()
     mode = "gray" if dense else "color"
+    sizing = None if dense else {"size_factor": _size_factor(size_factor)}
     with FrameReader(source, mode=mode, sizes=[c.size for c in rig.cameras], frames=range(count),
                      workers=workers) as reader:
-        run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file, dense)
+        run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file, dense, sizing)
     wall = time.perf_counter() - t_start
     res = run.result
-    mset = _measurement_set(res, times, (in_names, in_units, in_values), be.name, source, count, ref, highpass,
-                            rig_file, inputs_path)
+    mset = _measurement_set(res, times, (in_names, in_units, in_values), be.name, source, count, ref,
+                            highpass * (sizing or {}).get("size_factor", 1.0), rig_file, inputs_path)
     if csv_file:
         _write_csv(csv_file, mset, res.uv, names)
     write_measurements(output, mset)
     overlay = None
     if overlay_dir is not None:
         overlay = _overlay(ctx, overlay_dir, source, rig, run.result, count, ref, times, overlay_video, workers)
-    _report(output, run, times, wall, names, "dense" if dense else be.name, truth, ref, as_json, overlay)
+    _report(output, run, times, wall, names, "dense" if dense else be.name, truth, ref, as_json, overlay, sizing)
+
+
+def _size_factor(value) -> float | None:
+    """``--size-factor``: None for auto, else a positive number (exit 2 otherwise)."""
+    if str(value).strip().lower() == "auto":
+        return None
+    try:
+        k = float(value)
+    except ValueError:
+        k = math.nan
+    if not (math.isfinite(k) and 0 < k <= 100):
+        raise BadInput(f"--size-factor: 'auto' or a number in (0, 100] expected, got {value!r}")
+    return k
 
 
 # -- outputs are guarded before anything is read -------------------------------------------------------------------
@@ -297,10 +316,13 @@ def _dense_options(ref, pixel_sigma):
 
 
 # -- the stage -----------------------------------------------------------------------------------------------------
-def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=False):
+def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=False, sizing=None):
     """:func:`heartcv.measure.measure_sequence` (or :func:`heartcv.dense.dense_sequence`) over the reader, with a
-    progress bar; its problems as warnings."""
-    from heartcv.measure import MeasureFailed, auto_region, measure_sequence, reference_frames
+    progress bar; its problems as warnings. ``sizing["size_factor"]`` None (sparse mode): chosen here from the
+    reference camera's first frames (:func:`heartcv.measure.auto_size_factor`), and their blur recorded."""
+    from dataclasses import replace
+
+    from heartcv.measure import MeasureFailed, auto_region, auto_size_factor, measure_sequence, reference_frames
     from heartcv.tracker.files import InputError
 
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
@@ -316,10 +338,22 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 run = dense_sequence(frames, rig.cameras, opts, roi=roi)
         else:
             ref_cam = rig.cameras[opts.ref_camera]
+            sizing = {} if sizing is None else sizing
+            auto = sizing.get("size_factor") is None
+            first = reference_frames(reader.read, count, opts.ref_camera) if roi is None or auto else None
             if roi is None:
-                roi = auto_region(reference_frames(reader.read, count, opts.ref_camera), opts)
+                roi = auto_region(first, opts)
                 log.info("automatic region of interest: %d px (%.0f %% of camera %s); --mask to choose it",
                          roi.sum(), 100 * roi.mean(), ref_cam.name)
+            if auto:
+                if not first:
+                    raise InputError(None, "none of the reference camera's first frames can be read (needed by "
+                                           "--size-factor auto)", "images")
+                sizing["size_factor"], sizing["texture_blur_px"] = auto_size_factor(first, roi)
+                if sizing["size_factor"] > 1.0:
+                    log.info("texture blur %.2f px (camera %s): pixel sizes and thresholds x%.2f (--size-factor)",
+                             sizing["texture_blur_px"], ref_cam.name, sizing["size_factor"])
+            opts = replace(opts, size_factor=sizing["size_factor"])
             with progress(reader, "measuring", count, verbosity) as frames:
                 run = measure_sequence(frames, rig.cameras, opts, roi=roi, backend=backend)
     except InputError as exc:
@@ -379,11 +413,11 @@ def _overlay(ctx, folder, source, rig, result, count, ref, times, video, workers
     return summary
 
 
-def _report(output, run, times, wall, names, backend, truth, ref, as_json, overlay=None):
+def _report(output, run, times, wall, names, backend, truth, ref, as_json, overlay=None, sizing=None):
     from heartcv.measure_data import measurement_summary, truth_statistics
 
     summary = {"output": str(output), "cameras": names, "backend": backend,
-               **measurement_summary(run.result, times, wall, run.wait_s)}
+               **measurement_summary(run.result, times, wall, run.wait_s), **(sizing or {})}
     if overlay is not None:
         summary["overlay"] = str(overlay.get("folder"))
     if truth is not None:

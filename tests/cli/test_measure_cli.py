@@ -253,3 +253,23 @@ def test_no_such_sequence_exit_2(case):
     res = _measure(case, seq=missing)
     _assert_failed_cleanly(res, "no_such_sequence", "no such folder")
     _assert_no_output(case)
+
+
+def test_size_factor_auto_reports_the_blur_and_a_given_factor_scales_the_prefilter(case):
+    """--size-factor auto (the default) reports the texture blur it chose from and the factor max(1, blur / 1 px);
+    a given factor is reported as such, scales the high-pass recorded in the file's meta (3 px x 2), and needs no
+    blur; a value that is neither 'auto' nor a number in (0, 100] is exit 2 with nothing written."""
+    from heartcv.tracker.io import read_measurements
+
+    s = json.loads(_measure(case, "--json").stdout)
+    assert np.isfinite(s["texture_blur_px"]) and s["size_factor"] == max(1.0, s["texture_blur_px"])
+    res = _measure(case, "--json", "--size-factor", "2")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["size_factor"] == 2.0 and "texture_blur_px" not in s
+    assert read_measurements(case["out"] / "meas.npz").meta["highpass_sigma"] == 6.0
+    for bad in ("0", "-1", "nan", "big", "101"):
+        for p in case["out"].iterdir():
+            p.unlink()
+        _assert_failed_cleanly(_measure(case, "--size-factor", bad), "--size-factor", repr(bad))
+        _assert_no_output(case)

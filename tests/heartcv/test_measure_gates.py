@@ -125,3 +125,46 @@ def test_highlights_at_points_equal_the_dilated_mask():
     frame[10, 10] = 255
     hl = Highlights(specular_mask(frame, grow_px=0), 4)
     assert np.array_equal(hl.grown(), specular_mask(frame, grow_px=4)) and hl.grown().sum() > 12
+
+
+def test_size_factor_scales_every_pixel_size_and_threshold():
+    """``size_factor`` k: every size of the rules (or given) times k, windows and blocks rounded up to odd, the
+    high-pass, forward-backward, reprojection and outlier limits times k; k = 1 is exactly the unscaled options;
+    resolving twice changes nothing more."""
+    base = MeasureOptions().for_image(360, 288)
+    assert MeasureOptions(size_factor=1.0).for_image(360, 288) == base
+    o = MeasureOptions(size_factor=2.0).for_image(360, 288)
+    assert (o.min_distance_px, o.corner_block_size, o.match_radius) == (10.0, 7, 8)
+    assert (o.lk.window, o.lk.ncc_radius, o.lk.fb_max_px) == (23, 8, 2.0)
+    assert (o.highpass_sigma, o.max_reprojection_px, o.outlier_px, o.size_factor) == (6.0, 2.0, 2.0, 1.0)
+    assert o.for_image(360, 288) == o
+    g = MeasureOptions(size_factor=1.5, window_px=21, highpass_sigma=None).for_image(1920, 1080)
+    assert (g.lk.window, g.corner_block_size, g.match_radius, g.min_distance_px) == (33, 11, 10, 22.5)
+    assert g.highpass_sigma is None
+    with pytest.raises(ValueError, match="size_factor"):
+        MeasureOptions(size_factor=0.0)
+
+
+def test_texture_blur_is_the_blur_sigma_of_white_noise_and_doubles_with_upsampling():
+    """Closed form: white noise blurred by a Gaussian of sigma has E|grad|^2 / E(lap)^2 = sigma^2 / 2, so the
+    estimate is sigma (within 5 % for sigma >= 2 px on a 400 x 500 image; the finite differences read finer blur
+    low: 0.85 at 1 px, still increasing); upsampling by 2 (Lanczos) doubles it (10 %; the artefacts of cubic
+    interpolation and pixel noise read as sharp texture, so the estimate errs low); the automatic factor is 1 up to
+    SHARP_BLUR_PX and blur / SHARP_BLUR_PX beyond; a flat image gives 1."""
+    import cv2
+
+    from heartcv.measure import SHARP_BLUR_PX, auto_size_factor, texture_blur_px
+
+    rng = np.random.default_rng(7)
+    noise = rng.standard_normal((400, 500)) * 30 + 128
+    for sigma in (2.0, 3.0, 4.0):
+        assert texture_blur_px(cv2.GaussianBlur(noise, (0, 0), sigma)) == pytest.approx(sigma, rel=0.05)
+    fine = [texture_blur_px(cv2.GaussianBlur(noise, (0, 0), s)) for s in (0.7, 1.0, 1.5, 2.0)]
+    assert np.all(np.diff(fine) > 0) and 0.8 < fine[1] < 0.9
+    img = cv2.GaussianBlur(noise, (0, 0), 2.0).astype(np.float32)
+    up = cv2.resize(img, (1000, 800), interpolation=cv2.INTER_LANCZOS4)
+    assert texture_blur_px(up) / texture_blur_px(img) == pytest.approx(2.0, rel=0.1)
+    k, blur = auto_size_factor([up, up])
+    assert k == pytest.approx(blur / SHARP_BLUR_PX) and k > 2.0
+    assert auto_size_factor([cv2.GaussianBlur(noise, (0, 0), 0.7)])[0] == 1.0
+    assert auto_size_factor([np.full((50, 60), 9, np.uint8)]) == (1.0, pytest.approx(np.nan, nan_ok=True))
