@@ -349,7 +349,8 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 if not first:
                     raise InputError(None, "none of the reference camera's first frames can be read (needed by "
                                            "--size-factor auto)", "images")
-                sizing["size_factor"], sizing["texture_blur_px"] = auto_size_factor(first, roi)
+                sizing["size_factor"], blur = auto_size_factor(first, roi)
+                sizing["texture_blur_px"] = blur if math.isfinite(blur) else None     # None: a flat image
                 if sizing["size_factor"] > 1.0:
                     log.info("texture blur %.2f px (camera %s): pixel sizes and thresholds x%.2f (--size-factor)",
                              sizing["texture_blur_px"], ref_cam.name, sizing["size_factor"])
