@@ -429,7 +429,8 @@ PER_ESTIMATOR_KEYS = (
     "heldout_points", "prediction_error_within_fit_mean_m", "prediction_error_within_fit_count",
     "prediction_error_after_fit_mean_m", "prediction_error_after_fit_count",
     "prediction_error_after_fit_continuing_mean_m", "prediction_error_after_fit_continuing_count",
-    "heldout_prediction_error_after_fit_mean_m")
+    "heldout_prediction_error_after_fit_mean_m", "log_likelihood_per_point", "log_likelihood_points",
+    "log_likelihood_within_fit_per_point", "log_likelihood_after_fit_per_point")
 
 
 def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
@@ -461,6 +462,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
         "estimators": estimators,
         "ratio_ge_to_kf_prediction_error": compared["ratio_ge_to_kf_prediction_error"],
         "ratio_ge_to_kf_truth_error": compared["ratio_ge_to_kf_truth_error"],
+        "difference_ge_minus_kf_log_likelihood_per_point": compared["difference_ge_minus_kf_log_likelihood_per_point"],
         "fit_frames": compared["fit_frames"],
     }
 

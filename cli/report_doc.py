@@ -26,7 +26,7 @@ def _rows(doc) -> tuple[list, list]:
     """Header and rows of the per-estimator table (display units)."""
     head = ["estimator", "steps", "pred. error mean", "pred. error std", "pred. error RMS", "held-out pred. error mean",
             "truth error mean",
-            "pred. truth error mean", "NIS mean / dof", "NIS in band", "step median", "step p95"]
+            "pred. truth error mean", "NIS mean / dof", "NIS in band", "log lik. / point", "step median", "step p95"]
     rows = []
     for label, e in doc["estimators"].items():
         steps = f"{e['completed_steps']}/{e['steps']}" + (" (partial)" if e["partial"] else "")
@@ -38,6 +38,7 @@ def _rows(doc) -> tuple[list, list]:
                      mm(e["prediction_truth_error_mean_m"]),
                      f"{_num(e['nis_mean'])} / {_num(e['nis_mean_dof'], '{:g}')}",
                      _num(e["nis_in_band_fraction"], "{:.0%}"),
+                     _num(e.get("log_likelihood_per_point"), "{:.4f}"),
                      _num(None if e["step_time_median_s"] is None else e["step_time_median_s"] * 1e3, "{:.3g} ms"),
                      _num(None if e["step_time_p95_s"] is None else e["step_time_p95_s"] * 1e3, "{:.3g} ms")])
     return head, rows
@@ -66,6 +67,10 @@ def _facts(doc) -> list:
                       ("ratio_ge_to_kf_truth_error", "truth error (filtered)")):
         if doc[key] is not None:
             facts.append(f"GE / KF mean {what}: {doc[key]:.3f}.")
+    if doc.get("difference_ge_minus_kf_log_likelihood_per_point") is not None:
+        facts.append(f"GE − KF one-step predictive log-likelihood: "
+                     f"{doc['difference_ge_minus_kf_log_likelihood_per_point']:+.4f} nats per measured point "
+                     "(positive: the GE's predicted distribution fits the measurements better).")
     facts += _heart_rates(doc)
     for label, e in doc["estimators"].items():
         if e.get("without_input"):
@@ -177,14 +182,16 @@ def _fit_split_rows(doc):
 
     head = ["estimator", f"pred. error within the fit (1 ≤ k < {n})", f"pred. error after it (k ≥ {n})",
             "after it / hold's", "after it, tracks seen the frame before", "the same / hold's",
-            "held-out pred. error after it"]
+            "held-out pred. error after it", "log lik. / point within / after"]
     rows = []
     for label, e in est.items():
         rows.append([label, mm(e.get("prediction_error_within_fit_mean_m")),
                      mm(e.get("prediction_error_after_fit_mean_m")), ratio(e, "prediction_error_after_fit_mean_m"),
                      mm(e.get("prediction_error_after_fit_continuing_mean_m")),
                      ratio(e, "prediction_error_after_fit_continuing_mean_m"),
-                     mm(e.get("heldout_prediction_error_after_fit_mean_m"))])
+                     mm(e.get("heldout_prediction_error_after_fit_mean_m")),
+                     f"{_num(e.get('log_likelihood_within_fit_per_point'), '{:.4f}')} / "
+                     f"{_num(e.get('log_likelihood_after_fit_per_point'), '{:.4f}')}"])
     intro = (f"The parameters (and an estimated input) were fitted to frames 0–{n - 1} (heartcv fit --frames): the "
              f"predictions of frames 1–{n - 1} are in-sample, those from frame {n} on out-of-sample. Tracks seen the "
              "frame before leave out those re-appearing after a gap, which hold predicts at their last position.")

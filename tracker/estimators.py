@@ -335,7 +335,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     step_time = np.zeros(K)
     counters = {"clipped": 0, "low_mass": 0, "jitter": 0}
     Q_n = np.asarray(Q_n, float)
-    loglik = np.zeros(K)
+    loglik = np.full(K, np.nan)
 
     def result(done):
         md = dict(meta or {})
@@ -343,7 +343,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         md["counters"] = dict(counters, **md.get("counters", {}))
         if adapt is not None:
             md["adaptation"] = adapt.summary()
-        md["log_likelihood"] = float(loglik[1:done].sum())   # innovations of frames 1 .. done-1
+        md["log_likelihood"] = float(np.nansum(loglik[1:done]))   # innovations of frames 1 .. done-1
         if held_rows.any():
             md["heldout_points"] = [int(i) for i in np.asarray(meas.point_ids)[np.asarray(heldout)]]
         if offsets is not None:
@@ -351,7 +351,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         return EstimateSet(est.name, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std,
                            predictions, innovations, nis, dof, trunc, step_time, done, meta=md, phi_mean=phi_mean,
                            phi_cov=phi_cov, filtered=filtered, heart_rate=rates.get("heart_rate"),
-                           respiration_rate=rates.get("respiration_rate"))
+                           respiration_rate=rates.get("respiration_rate"),
+                           log_likelihood=np.where(np.arange(K) < done, loglik, np.nan))
 
     offsets = TrackOffsets(len(keep), drift) if drift else None
     state = prior
@@ -421,7 +422,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             trace[k] = est.rate(state, name)
         theta[k], theta_std[k] = est.parameters(state)
         nis[k] = res.nis
-        loglik[k] = res.log_likelihood
+        loglik[k] = res.log_likelihood if res.dof else np.nan
         dof[k] = res.dof
         trunc[k] = events
         if progress is not None:

@@ -178,7 +178,7 @@ def _check_registration(reg, path, field):
 # -- estimates ------------------------------------------------------------------------------------
 _EST_ARRAYS = ("times", "point_ids", "state_mean", "state_var", "theta", "theta_std", "predictions",
                "innovations", "nis", "nis_dof", "truncation_events", "step_time")
-_EST_OPTIONAL = ("phi_mean", "phi_cov", "filtered", "heart_rate", "respiration_rate")
+_EST_OPTIONAL = ("phi_mean", "phi_cov", "filtered", "heart_rate", "respiration_rate", "log_likelihood")
 _EST_SCHEMA = {
     "times": ArraySpec("f", ("K",), max_abs=T_MAX),
     "point_ids": ArraySpec("iu", ("P",)),
@@ -197,6 +197,7 @@ _EST_SCHEMA = {
     "filtered": ArraySpec("f", ("K", "P", 3), finite="nan", required=False, max_abs=L_MAX),
     "heart_rate": ArraySpec("f", ("K", 2), finite="nan", required=False, max_abs=1e3),
     "respiration_rate": ArraySpec("f", ("K", 2), finite="nan", required=False, max_abs=1e3),
+    "log_likelihood": ArraySpec("f", ("K",), finite="nan", required=False, max_abs=1e100),
 }
 from .estimators import NAMES as ESTIMATORS  # noqa: E402  (the registry of estimator names)
 

@@ -177,6 +177,9 @@ class EstimateSet:
     heart_rate : (K, 2), optional         the GE with a sampled heart rate: its posterior mean and standard
                                           deviation per step (Hz)
     respiration_rate : (K, 2), optional   the GE with a sampled respiration rate: likewise (Hz)
+    log_likelihood : (K,), optional       the model-based estimators: log p(y_k | y_0 .. y_(k-1)) of each step's
+                                          update, the Gaussian predictive density of the measurements used (nats,
+                                          positions in metres; NaN where nothing was seen or the step did not run)
     """
 
     estimator: str
@@ -199,6 +202,7 @@ class EstimateSet:
     filtered: np.ndarray | None = None
     heart_rate: np.ndarray | None = None
     respiration_rate: np.ndarray | None = None
+    log_likelihood: np.ndarray | None = None
 
     def __post_init__(self):
         K = np.asarray(self.times).size
@@ -220,6 +224,8 @@ class EstimateSet:
         for name in ("heart_rate", "respiration_rate"):
             if getattr(self, name) is not None:
                 expect[name] = (K, 2)
+        if self.log_likelihood is not None:
+            expect["log_likelihood"] = (K,)
         for name, shape in expect.items():
             a = np.asarray(getattr(self, name))
             if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):

@@ -42,6 +42,8 @@ __all__ = [
     "nis_mean_band",
     "nis_statistics",
     "step_time_statistics",
+    "LOG_LIKELIHOOD_KEYS",
+    "log_likelihood_statistics",
     "measurement_noise_level",
     "mean_noise_norm",
     "truth_error_norms",
@@ -298,6 +300,41 @@ def _fit_split(norms, held_norms, seen, fit_frames, c) -> dict:
                            cont["count"], held), strict=True))
 
 
+LOG_LIKELIHOOD_KEYS = ("log_likelihood_per_point", "log_likelihood_points", "log_likelihood_within_fit_per_point",
+                       "log_likelihood_after_fit_per_point")
+
+
+def log_likelihood_statistics(est: EstimateSet, fit_frames: int | None = None) -> dict:
+    """The one-step predictive log-likelihood of a model-based run per measured point: the sum over the completed
+    steps k >= 1 of log p(y_k | y_0 .. y_(k-1)) (the file's ``log_likelihood``) over the points measured in them
+    (``nis_dof / 3``; held-out points are in no update), and the same within the fitted frames (1 <= k < N) and
+    after them (k >= N). A proper score of the predicted distribution, mean and covariance together; the points of
+    one frame count as independent given the state, as in the filters. Densities of positions in metres, so the
+    values depend on the unit; only differences between runs on the same measurements compare. None for every key
+    without the array (baselines, files written before it)."""
+    out = dict.fromkeys(LOG_LIKELIHOOD_KEYS)
+    if est.log_likelihood is None:
+        return out
+    c = completed(est)
+    ll = np.asarray(est.log_likelihood, float)[:c]
+    pts = np.asarray(est.nis_dof, float)[:c] / 3.0
+    use = np.isfinite(ll) & (pts > 0)
+    use[:1] = False
+
+    def per_point(mask):
+        n = float(pts[mask].sum())
+        return float(ll[mask].sum() / n) if n > 0 else None
+
+    out["log_likelihood_per_point"] = per_point(use)
+    out["log_likelihood_points"] = float(pts[use].sum())
+    n = None if fit_frames is None else int(fit_frames)
+    if n is not None and 0 < n < c:
+        k = np.arange(c)
+        out["log_likelihood_within_fit_per_point"] = per_point(use & (k < n))
+        out["log_likelihood_after_fit_per_point"] = per_point(use & (k >= n))
+    return out
+
+
 def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.95, fit_frames: int | None = None
                       ) -> dict:
     """All per-run metrics of one estimate set (only its completed steps).
@@ -327,7 +364,8 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
     one-step predictions against the truth, over the same (k, p); NaN without truth), ``nis_mean``,
     ``nis_mean_dof``, ``nis_mean_band``, ``nis_in_band_fraction``, ``theta_final``, ``theta_std_final`` (dicts
     by parameter name, last completed step; NaN if none), ``step_time_median_s``, ``step_time_p95_s``,
-    ``truncation_events``, and the per-step arrays under ``'per_step'``: ``times``, ``error_mean``,
+    ``truncation_events``, the keys of :func:`log_likelihood_statistics` (None for a run without
+    ``log_likelihood``), and the per-step arrays under ``'per_step'``: ``times``, ``error_mean``,
     ``error_var``, ``error_count``, ``truth_error_mean``, ``truth_error_var`` (filtered),
     ``prediction_truth_error_mean``, ``prediction_truth_error_var``, ``nis``, ``nis_dof``, ``nis_lo``,
     ``nis_hi``, ``theta``, ``theta_std``, ``step_time``.
@@ -352,6 +390,7 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
         "heldout_points": int(held.sum()),
     }
     out.update(_fit_split(norms, held_norms if held.any() else None, _seen(est, c), fit_frames, c))
+    out.update(log_likelihood_statistics(est, fit_frames))
     none = {"mean": np.nan, "std": np.nan, "rms": np.nan}
     f_mean = f_var = p_mean = p_var = np.full(c, np.nan)
     f_pool = p_pool = none
@@ -480,7 +519,9 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         ``mixed`` (some run is of another sequence, :func:`sequence_mismatch`);
         ``measurement_truth_error_mean_m`` (of the first run that has one, else None);
         ``ratio_ge_to_kf_prediction_error`` and ``ratio_ge_to_kf_truth_error`` (runs labelled ``ge`` and
-        ``kf``; None without both or a non-positive denominator); ``fit_frames`` (as given).
+        ``kf``; None without both or a non-positive denominator); ``difference_ge_minus_kf_log_likelihood_per_point``
+        (the GE's :func:`log_likelihood_statistics` per point minus the KF's, None unless both ran their updates on
+        the same number of points); ``fit_frames`` (as given).
     """
     truth_positions = truth_positions or {}
     per = {}
@@ -506,6 +547,14 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         ge, kf = per.get("ge"), per.get("kf")
         return None if ge is None or kf is None else _ratio(ge[key], kf[key])
 
+    def ll_difference():
+        ge, kf = per.get("ge"), per.get("kf")
+        if ge is None or kf is None or ge["log_likelihood_per_point"] is None or kf["log_likelihood_per_point"] is None:
+            return None
+        if ge["log_likelihood_points"] != kf["log_likelihood_points"]:
+            return None
+        return ge["log_likelihood_per_point"] - kf["log_likelihood_per_point"]
+
     return {
         "per_run": per,
         "sequence": {"frames": int(t.size), "duration_s": float(t[-1] - t[0]), "points": int(first.point_ids.size),
@@ -514,6 +563,7 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         "measurement_truth_error_mean_m": own[0] if own else None,
         "ratio_ge_to_kf_prediction_error": ratio("prediction_error_mean_m"),
         "ratio_ge_to_kf_truth_error": ratio("truth_error_mean_m"),
+        "difference_ge_minus_kf_log_likelihood_per_point": ll_difference(),
         "fit_frames": None if fit_frames is None else int(fit_frames),
     }
 

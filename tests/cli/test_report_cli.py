@@ -99,6 +99,10 @@ def test_end_to_end(run):
         assert e["prediction_truth_error_mean_m"] < 0.3 * e["measurement_truth_error_mean_m"]
         assert e["truth_error_mean_m"] < doc["measurement_noise_m"]
         assert 0.7 < e["nis_mean"] / e["nis_mean_dof"] < 1.3
+        # the predictive log-likelihood per measured point (14 points in each frame k >= 1)
+        assert e["log_likelihood_points"] == 30 * 14
+        assert e["log_likelihood_per_point"] == pytest.approx(est.log_likelihood[1:].sum() / (30 * 14), rel=1e-12)
+        assert est.meta["log_likelihood"] == pytest.approx(est.log_likelihood[1:].sum(), rel=1e-12)
     assert doc["measurement_truth_error_mean_m"] == doc["estimators"]["ge"]["measurement_truth_error_mean_m"]
     assert doc["measurement_noise_norm_mean_m"] == pytest.approx(1e-4 * np.sqrt(8 / np.pi), rel=1e-12)
     # the measurements' own truth error is the noise: 434 norms of N(0, sigma^2 I3), mean sigma sqrt(8/pi)
@@ -111,6 +115,9 @@ def test_end_to_end(run):
     assert doc["estimators"]["ge"]["theta_std_final"]["E"] > 0 == doc["estimators"]["kf"]["theta_std_final"]["E"]
     assert doc["ratio_ge_to_kf_prediction_error"] == pytest.approx(
         doc["estimators"]["ge"]["prediction_error_mean_m"] / doc["estimators"]["kf"]["prediction_error_mean_m"])
+    ll = {n: doc["estimators"][n]["log_likelihood_per_point"] for n in ("ge", "kf")}
+    assert doc["difference_ge_minus_kf_log_likelihood_per_point"] == pytest.approx(ll["ge"] - ll["kf"], rel=1e-12)
+    assert "log lik. / point" in md and "GE − KF one-step predictive log-likelihood" in md
     assert doc["inputs_hash"]["measurements"] == read_estimates(run / "kf.npz").meta["inputs_hash"]["measurements"]
     assert meas.n_frames == 31
 
