@@ -69,7 +69,7 @@ def _facts(doc) -> list:
             facts.append(f"GE / KF mean {what}: {doc[key]:.3f}.")
     if doc.get("difference_ge_minus_kf_log_likelihood_per_point") is not None:
         facts.append(f"GE − KF one-step predictive log-likelihood: "
-                     f"{doc['difference_ge_minus_kf_log_likelihood_per_point']:+.4f} nats per measured point "
+                     f"{doc['difference_ge_minus_kf_log_likelihood_per_point']:+.3g} nats per measured point "
                      "(positive: the GE's predicted distribution fits the measurements better).")
     facts += _heart_rates(doc)
     for label, e in doc["estimators"].items():

@@ -105,6 +105,10 @@ def _odd_nodes(ctx, param, value):
               help="ge with an estimated input (--params of a fit without pressure): carry the heart rate (and the "
                    "respiration rate, when the fit saw one) among the sampled parameters (docs/model.md 17), or "
                    "hold them at the fit's values.")
+@click.option("--heart-rate-walk", type=Float(0.0, 1.0), default=None,
+              help="ge sampling the heart rate: the random walk of its log per square-root second (default 0.02, a "
+                   "resting heart's beat-to-beat variability; 0: an unknown constant rate, a paced or steady heart; "
+                   "docs/model.md 17).")
 @click.option("--rigid-dynamics", type=click.Choice(("refit", "fit")), default="refit", show_default=True,
               help="kf/ge/ukf/ekf with an estimated input: 'refit' learns the rigid motion's increment "
                    "autoregression again from the KF's filtered rigid motion over the fitted frames (when the "
@@ -114,7 +118,7 @@ def _odd_nodes(ctx, param, value):
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
           adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, without_input,
-          sample_heart_rate, rigid_dynamics, output, as_json):
+          sample_heart_rate, heart_rate_walk, rigid_dynamics, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -136,6 +140,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise BadInput("--without-input applies to the model-based estimators (kf, ge, ukf, ekf) only")
     if without_input and params_file is None:
         raise BadInput("--without-input needs --params: the parameters file of a fit with an estimated input")
+    if heart_rate_walk is not None and (estimator != "ge" or not sample_heart_rate):
+        raise BadInput("--heart-rate-walk applies to ge sampling the heart rate only (not with --hold-heart-rate)")
     part = partial_path(output)
     guard_outputs({"-o/--output": output, "the partial file of -o": part},
                   {"MEASUREMENTS": measurements, "--model": model_file, "--params": params_file},
@@ -151,6 +157,9 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     if fitted is not None:
         m = _fitted_patch(m, fitted, params_file)
         input_block = _input_block(m, meas, fitted, params_file, measurements)
+        if heart_rate_walk is not None and input_block is None:
+            raise BadInput(f"--heart-rate-walk: {params_file} holds no estimated input (estimated_input; the fit had "
+                           "a recorded pressure), so the GE samples no heart rate")
         if without_input and input_block is None:
             raise BadInput(f"--without-input: {params_file} holds no estimated input (estimated_input; the fit had "
                            "a recorded pressure)")
@@ -202,7 +211,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
             input_block = _rigid_dynamics(rigid_dynamics, m, meas, fitted, full_block, references, adaptation,
                                           heldout, full_drift, meta).without_input()
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
-                   adaptation, heldout, input_block, drift, sample_heart_rate)
+                   adaptation, heldout, input_block, drift, sample_heart_rate, heart_rate_walk)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -282,15 +291,17 @@ def _rigid_dynamics(mode, m, meas, fitted, input_block, references, adaptation, 
     return input_block
 
 
-def _rate_prior(estimator, input_block, fitted):
+def _rate_prior(estimator, input_block, fitted, heart_rate_walk=None):
     """The GE with an estimated input samples the heart rate, and the respiration rate when the fit saw one: their
-    priors from the fit (docs/model.md §17)."""
-    from heartcv.tracker.unknown_input import RatePrior, respiration_prior
+    priors from the fit (docs/model.md §17); ``heart_rate_walk`` (per square-root second) replaces the heart rate's
+    default random walk."""
+    from heartcv.tracker.unknown_input import RATE_WALK_PER_SQRT_S, RatePrior, respiration_prior
 
     if estimator != "ge" or input_block is None:
         return None
     rate = _fitted_heart_rate(fitted)
-    rates = [RatePrior(input_block.frequency_hz, rate.get("heart_rate_std_hz") or 0.0)]
+    walk = RATE_WALK_PER_SQRT_S if heart_rate_walk is None else float(heart_rate_walk)
+    rates = [RatePrior(input_block.frequency_hz, rate.get("heart_rate_std_hz") or 0.0, walk_per_sqrt_s=walk)]
     if input_block.respiration_harmonics:
         resp = fitted.estimated_input.get("respiration") if fitted is not None else None
         std = resp.get("std_hz") if isinstance(resp, dict) else None
@@ -519,7 +530,7 @@ def _adaptation(adapt, random_walk, window):
 
 
 def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation,
-         heldout=None, input_block=None, drift=None, sample_heart_rate=True):
+         heldout=None, input_block=None, drift=None, sample_heart_rate=True, heart_rate_walk=None):
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker.joint import run_joint
@@ -534,7 +545,8 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
                               input_block=input_block, drift=drift, progress=tick)
         return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options, progress=tick,
                          references=references, adaptation=adaptation, heldout=heldout, input_block=input_block,
-                         drift=drift, rate=_rate_prior(estimator, input_block, fitted) if sample_heart_rate else None)
+                         drift=drift, rate=(_rate_prior(estimator, input_block, fitted, heart_rate_walk)
+                                            if sample_heart_rate else None))
 
 
 def _diverged(exc, estimator, meas, meta, part, output, measurements) -> str:

@@ -146,6 +146,26 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
                                     "--hold-heart-rate", "-o", ge2])
     assert res.exit_code == 0, res.output
     assert read_estimates(ge2).heart_rate is None and read_estimates(ge2).meta["heart_rate_hz"] == hr["frequency_hz"]
+    # --heart-rate-walk: the rate's walk per square-root second (default 0.02); 0 makes it an unknown constant,
+    # whose posterior variance then only shrinks
+    dt = float(np.median(np.diff(g.times)))
+    assert g.meta["heart_rate_prior"]["walk_per_frame_log"] == pytest.approx(0.02 * np.sqrt(dt), rel=1e-12)
+    ge0 = str(tmp_path / "ge_walk0.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "ge",
+                                    "--heart-rate-walk", "0", "-o", ge0])
+    assert res.exit_code == 0, res.output
+    g0 = read_estimates(ge0)
+    assert g0.meta["heart_rate_prior"]["walk_per_frame_log"] == 0
+    sd = g0.heart_rate[:, 1]
+    assert np.all(np.diff(sd) <= 1e-9 * sd[:-1]) and sd[-1] < 0.5 * sd[0], sd
+    assert not np.allclose(g0.heart_rate[:, 0], g.heart_rate[:, 0])
+    for args in (["--estimator", "kf", "--heart-rate-walk", "0.01"],
+                 ["--estimator", "ge", "--hold-heart-rate", "--heart-rate-walk", "0.01"],
+                 ["--estimator", "ge", "--heart-rate-walk", "-0.1"]):
+        bad_out = tmp_path / "walk_bad.npz"
+        res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, *args,
+                                        "-o", str(bad_out)])
+        assert res.exit_code == 2 and "--heart-rate-walk" in res.output and not bad_out.exists(), res.output
     bad = tmp_path / "bad.png"
     bad.write_text("not an image")
     res = CliRunner().invoke(main, ["report", out, "--image", str(bad), "-o", str(tmp_path / "rep2")])
