@@ -567,7 +567,7 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
     """The summary: JSON on stdout, or one INFO line (``meta``: what the stage adds to the file's meta)."""
     import math
 
-    from heartcv.tracker.metrics import nis_statistics, step_time_statistics
+    from heartcv.tracker.metrics import log_likelihood_statistics, nis_statistics, step_time_statistics
     from heartcv.tracker.params import NAMES
 
     def finite(v):
@@ -580,6 +580,7 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
         "nis_mean": finite(nis["mean"]),
         "nis_dof_mean": finite(nis["mean_dof"]),
         "prediction_rmse_m": finite(est.prediction_rmse()),
+        "log_likelihood_per_point": log_likelihood_statistics(est)["log_likelihood_per_point"],
         "step_ms_median": step_time_statistics(est.step_time)["median"] * 1e3,
         "theta_final": dict(zip(NAMES, map(finite, est.theta[-1]), strict=True)),
         "theta_std_final": dict(zip(NAMES, map(finite, est.theta_std[-1]), strict=True)),

@@ -57,6 +57,8 @@ def test_simulate_then_track(runner, tmp_path):
     e = read_estimates(est)
     assert e.complete and e.estimator == "kf"
     assert e.prediction_rmse() == pytest.approx(out["prediction_rmse_m"])
+    # the predictive log-likelihood per measured point: 14 points in each of frames 1..60
+    assert out["log_likelihood_per_point"] == pytest.approx(e.log_likelihood[1:].sum() / (60 * 14), rel=1e-12)
     # same seed -> identical file contents
     meas2 = str(tmp_path / "m2.npz")
     _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "2", "--seed", "4", "-o", meas2, "--json"]))
