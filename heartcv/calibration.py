@@ -19,6 +19,7 @@ References
 from __future__ import annotations
 
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,7 @@ from .detect import Detection
 
 __all__ = ["CalibrationError", "IntrinsicsResult", "calibrate_intrinsics", "outlier_views", "usable_view",
            "describe_target", "target_mismatch", "polarity_mismatch", "ViewSelection", "select_views",
-           "DIST_MODELS", "MIN_VIEWS", "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX"]
+           "DIST_MODELS", "MIN_VIEWS", "OUTLIER_FACTOR", "OUTLIER_FLOOR_PX", "opencv_threads"]
 
 DIST_MODELS = (4, 5, 8)  # (k1, k2, p1, p2) [COLMAP OPENCV, Kalibr radtan], + k3, + rational k4..k6
 MIN_VIEWS = 4            # usable views needed per camera
@@ -258,6 +259,22 @@ _FIX_FLAGS = ("CALIB_FIX_K1", "CALIB_FIX_K2", None, None, "CALIB_FIX_K3", "CALIB
               "CALIB_FIX_K6")
 
 
+@contextmanager
+def opencv_threads(n: int):
+    """Run the block with OpenCV's thread count at ``n`` (process-wide; restored after). ``cv2.calibrateCameraExtended``
+    with several threads is not reproducible: on the rendered phantom's calibration views two runs' k3 differed in
+    the 8th digit, and the later stages carried that on (two ``make demo`` runs: GE prediction error 0.01513 and
+    0.01496 mm). With one thread the rig file is identical run to run."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(int(n))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def _cv_calibrate(obj, img, image_size, dist_size, free_dist=None, fix_principal_point=False, start=None):
     import cv2
 
@@ -282,8 +299,9 @@ def _cv_calibrate(obj, img, image_size, dist_size, free_dist=None, fix_principal
         if free_dist is not None:  # fixed terms are fixed at 0 unless a start gives them
             d0[:dist_size] = np.where(free_dist | (start is not None), d0[:dist_size], 0.0)
         flags |= cv2.CALIB_USE_INTRINSIC_GUESS
-    out = cv2.calibrateCameraExtended(obj, img, tuple(int(v) for v in image_size), K0, d0,
-                                      flags=flags, criteria=crit)
+    with opencv_threads(1):   # OpenCV's threads sum the views in a varying order: results then differ run to run
+        out = cv2.calibrateCameraExtended(obj, img, tuple(int(v) for v in image_size), K0, d0,
+                                          flags=flags, criteria=crit)
     rms, K, dist, rvecs, tvecs, std_in, _, per_view = out
     return (float(rms), np.asarray(K, float), np.asarray(dist, float).reshape(-1)[:dist_size], rvecs, tvecs,
             np.asarray(std_in, float).reshape(-1), np.asarray(per_view, float).reshape(-1))

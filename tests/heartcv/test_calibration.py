@@ -395,6 +395,37 @@ def test_intrinsics_reject_and_report():
     assert res.std.shape == (9,) and np.all(res.std > 0)
 
 
+def test_intrinsics_reproducible_with_opencv_threads(monkeypatch):
+    """``cv2.calibrateCameraExtended`` runs with one OpenCV thread (its threads sum the views in a varying order, and
+    two ``make demo`` runs gave different rig files); the caller's thread count is restored after it, and three
+    calibrations with 4 OpenCV threads set are bit-identical."""
+    import cv2
+
+    cams, c0w, spec = _wide_rig(1)
+    rng = np.random.default_rng(15)
+    dets = observe(cams, c0w, board_poses(30, rng, spec, spread=0.1), spec, rng)[0]
+    seen = []
+    real = cv2.calibrateCameraExtended
+
+    def spy(*a, **k):
+        seen.append(cv2.getNumThreads())
+        return real(*a, **k)
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(4)
+        runs = [calibrate_intrinsics(dets, spec, (1920, 1080)) for _ in range(3)]
+        monkeypatch.setattr(cv2, "calibrateCameraExtended", spy)
+        calibrate_intrinsics(dets, spec, (1920, 1080))
+        assert seen and set(seen) == {1} and cv2.getNumThreads() == 4
+    finally:
+        cv2.setNumThreads(before)
+    for r in runs[1:]:
+        np.testing.assert_array_equal(r.K, runs[0].K)
+        np.testing.assert_array_equal(r.dist, runs[0].dist)
+        assert r.rms_px == runs[0].rms_px
+
+
 # -- real data (issue 4 acceptance) ---------------------------------------------------------------------------------
 def _detect_pairs(folder, pattern, spec):
     """Detections [left, right] of the left*/right* image pairs of a shared data set."""
