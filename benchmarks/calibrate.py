@@ -25,7 +25,8 @@ coverage restricts the distortion terms: the full one and the joint refinement's
 weights, joint refinement (``bundle_adjust``: the outlier rounds and the reruns after a distortion fold; the
 ``refinements`` column counts them), problem assembly, k-fold check (its refits included) and the rest. Everything
 runs under
-``threadpoolctl.threadpool_limits(1)`` for BLAS (OpenCV keeps its default thread count, printed).
+``threadpoolctl.threadpool_limits(1)`` for BLAS (OpenCV keeps its default thread count, printed, except in
+``cv2.calibrateCameraExtended``, which :mod:`heartcv.calibration` runs on one thread for reproducible results).
 """
 
 from __future__ import annotations
