@@ -3,11 +3,14 @@ where errors become exit codes (docs/cli.md §1.3):
 
 - :class:`heartcv.tracker.files.InputError` (input that failed validation; it names the file and the field) -> exit 2;
 - click's own exceptions (usage errors exit 2, :class:`~heartcv.cli.options.StageFailed` exit 1) pass through;
+- an ``OSError`` the machine causes (a full disk, a read-only file system, no permission: :data:`SYSTEM_ERRNOS`) ->
+  exit 1 naming the file and the reason (:class:`SystemRefused`);
 - anything else is a bug in heartcv: one line says so (exit 1), the traceback follows with ``-v``.
 """
 
 from __future__ import annotations
 
+import errno
 import importlib
 import logging
 import sys
@@ -52,6 +55,10 @@ class LazyGroup(click.Group):
         except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort, KeyboardInterrupt,
                 SystemExit):
             raise
+        except OSError as exc:
+            if exc.errno in SYSTEM_ERRNOS:   # the machine refused a file operation: neither the input nor a bug
+                raise SystemRefused(exc) from None
+            raise InternalError(exc, (ctx.obj or {}).get("verbosity", 0)) from None
         except Exception as exc:  # noqa: BLE001 - the one place that reports bugs (docs/cli.md §1.3)
             verbosity = (ctx.obj or {}).get("verbosity", 0)
             raise InternalError(exc, verbosity) from None
@@ -59,6 +66,26 @@ class LazyGroup(click.Group):
 
 class _InputRefused(click.ClickException):
     exit_code = 2
+
+    def show(self, file=None):
+        click.echo(f"Error: {self.format_message()}", err=True)
+
+
+SYSTEM_ERRNOS = frozenset(getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM", "EIO", "EMFILE",
+                                                     "ENFILE", "ENOMEM") if hasattr(errno, n))
+"""Failed file operations that are the machine's condition (a full disk or quota, a read-only file system, missing
+permission, an I/O error, too many open files, no memory): a failed stage (exit 1) naming the file, not a bug."""
+
+
+class SystemRefused(click.ClickException):
+    """The operating system refused a file operation (:data:`SYSTEM_ERRNOS`): exit 1 with its reason and the file."""
+
+    exit_code = 1
+
+    def __init__(self, exc: OSError):
+        name = f": {exc.filename}" if exc.filename is not None else ""
+        super().__init__(f"{exc.strerror or exc}{name} -- the system refused a file operation (free space or fix the "
+                         "permissions and run again); the stage stopped, its outputs are incomplete or absent")
 
     def show(self, file=None):
         click.echo(f"Error: {self.format_message()}", err=True)

@@ -1,6 +1,7 @@
 """A bug inside a computation is reported as a bug (exit 1, "internal error"), never as bad input (exit 2) that
 blames the user's file; nothing is written; -v shows the traceback."""
 
+import errno
 import os
 
 from click.testing import CliRunner
@@ -66,3 +67,26 @@ def test_a_value_error_inside_the_fit_is_an_internal_error(tmp_path, meas_file, 
     assert res.exit_code == 1, res.output
     assert "Error: internal error: ValueError" in res.stderr and "did not converge" not in res.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("code, system", [(errno.ENOSPC, True), (errno.EROFS, True), (errno.EINVAL, False)])
+def test_a_full_disk_is_a_failed_stage_not_a_bug(tmp_path, monkeypatch, code, system):
+    """An OSError the machine causes (a full disk, a read-only file system) while writing an output stops the stage
+    with exit 1 and the system's reason, neither as a bug nor as bad input, and leaves no file under the output's
+    name; any other OSError stays an internal error."""
+    from pathlib import Path
+
+    def refuse(self, data):
+        raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(Path, "write_bytes", refuse)
+    out = tmp_path / "m.npz"
+    res = CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "0.2", "-o", str(out)])
+    assert res.exit_code == 1, res.output
+    last = res.stderr.strip().splitlines()[-1]
+    if system:
+        assert last == (f"Error: {os.strerror(code)} -- the system refused a file operation (free space or fix the "
+                        "permissions and run again); the stage stopped, its outputs are incomplete or absent")
+    else:
+        assert last.startswith("Error: internal error: OSError at ") and "this is a bug in heartcv" in last
+    assert "Traceback" not in res.stderr and os.listdir(tmp_path) == []
