@@ -36,6 +36,10 @@ MAX_WORKERS = 1024
                    "SEQUENCE/inputs.csv if present. Interpolated linearly to the frame times.")
 @click.option("--fps", type=Float(0, 10000, lo_open=True), default=None,
               help="Frame rate (Hz). Default: SEQUENCE/timestamps.csv, else the videos' rate, else 30.")
+@click.option("--packed", type=click.Choice(("side-by-side", "top-bottom", "rows")), default=None,
+              help="SEQUENCE holds one video or one folder of images whose every frame packs the views of the "
+                   "rig's cameras, in the rig's order: side by side, top to bottom, or in interleaved rows (an "
+                   "interlaced frame whose fields are the views).")
 @click.option("--ref-camera", default=None, help="Camera where points are detected (default: the rig's first).")
 @click.option("--points", "max_points", type=Int(1), default=300, show_default=True,
               help="Points to keep tracked (new ones are detected when fewer than 80 % are seen).")
@@ -95,12 +99,13 @@ MAX_WORKERS = 1024
 @click.option("--workers", type=Int(1, MAX_WORKERS), default=2, show_default=True, help="Image decoding threads.")
 @json_opt
 @click.pass_context
-def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_camera, max_points, min_distance,
+def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed, ref_camera, max_points, min_distance,
             corner_block, corner_quality, frames, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
             max_depth_std, max_reprojection, min_angle, max_gap, window, no_specular, overlay_dir, overlay_video,
             backend, device, pixel_sigma, highpass, size_factor, truth_file, csv_file, workers, as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
-    name is the same instant) seen by the cameras of RIG, and write their positions and covariances per frame.
+    name is the same instant; or, with --packed, one holding all the views) seen by the cameras of RIG, and write
+    their positions and covariances per frame.
 
     Isolated bad images (missing, corrupt, wrong size) are named in a warning and that camera is left out of
     that frame. Exit 2 for bad input (cameras missing, different frame counts, a rig that does not fit the
@@ -126,7 +131,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, ref_ca
         raise InputError(rig_file, f"{len(rig)} camera ({rig.names[0]}); measure triangulates from at least 2",
                          "cameras")
     _check_rig_scale(rig, rig_file)
-    source = open_frame_source(sequence, cameras=rig.names, cameras_source=rig_file)
+    source = open_frame_source(sequence, cameras=rig.names, cameras_source=rig_file, packing=packed)
     names = rig.names
     ref = 0 if ref_camera is None else (names.index(ref_camera) if ref_camera in names else None)
     if ref is None:
@@ -212,7 +217,25 @@ def _check_sizes(source, rig, count, rig_file):
         return source.files[c][k if source.kind == "images" else 0]
 
     with FrameReader(source, frames=range(count), workers=1) as reader:
+        if source.packing:
+            _check_packed(reader, source, count, locate)
         check_image_sizes(rig.cameras, reader.read, count, locate, f"the rig {rig_file}")
+
+
+def _check_packed(reader, source, count, locate):
+    """Exit 2 if the first readable frame of a packed source does not split into the rig's cameras' views."""
+    from heartcv.io import unpack_views
+    from heartcv.tracker.files import InputError
+
+    for k in range(count):
+        frame, _ = reader.read_packed(k)
+        if frame is not None:
+            try:
+                unpack_views(frame, source.packing, source.n_cameras)
+            except ValueError as exc:
+                raise InputError(locate(0, k), f"{exc} (one per camera of the rig: {list(source.camera_names)})",
+                                 "--packed") from None
+            return
 
 
 def _check_rig_scale(rig, rig_file):
@@ -384,7 +407,7 @@ def _measurement_set(res, times, inputs, backend, source, count, ref, highpass, 
             "reference_frame_index": res.birth_frame.tolist(),
             "reference_uv": [[float(v) for v in res.uv[b, p, ref]] for p, b in enumerate(res.birth_frame)],
             "frame_names": list(source.frame_names[:count]), "highpass_sigma": highpass, "inputs_hash": hashes,
-            "sequence": str(source.folder)}
+            "sequence": str(source.folder)} | ({"packed": source.packing} if source.packing else {})
     return MeasurementSet(times=times, point_ids=res.point_ids, positions=res.positions, covariances=res.covariances,
                           reference=res.reference, inputs=in_values, input_names=in_names, input_units=in_units,
                           frame="rig", views=res.views, reprojection_rms=res.reprojection_rms, meta=meta)

@@ -50,6 +50,7 @@ __all__ = [
     "RIG_FORMAT", "DIST_NAMES", "rig_to_dict", "rig_from_dict", "read_rig", "write_rig",
     "write_colmap", "colmap_camera", "write_kalibr", "kalibr_camchain",
     "VIDEO_SUFFIXES", "FrameSource", "open_frame_source", "camera_entries", "FrameReader", "read_timestamps",
+    "PACKINGS", "unpack_views",
     "read_mask", "read_inputs_csv_columns",
 ]
 
@@ -664,6 +665,41 @@ def read_render_truth(path, require=(), what: str | None = None) -> tuple[dict, 
 # =====================================================================================================================
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv", ".webm")
 
+#: How the views of a stereo (or multi-view) camera can be packed into one frame (``heartcv measure --packed``):
+#: equal columns left to right, equal bands top to bottom, or interleaved rows (an interlaced frame whose fields
+#: are the views: view c holds rows c, c + n, c + 2n, ...). View c is the rig's c-th camera.
+PACKINGS = ("side-by-side", "top-bottom", "rows")
+
+
+def unpack_views(frame: np.ndarray, packing: str, n_views: int = 2) -> list:
+    """The ``n_views`` views packed into one frame (:data:`PACKINGS`), each a contiguous copy, in packing order.
+
+    Raises
+    ------
+    ValueError
+        An unknown packing, fewer than two views, or a frame that does not divide into ``n_views`` views of one
+        size (the message gives the frame's size).
+    """
+    if packing not in PACKINGS:
+        raise ValueError(f"packing: one of {PACKINGS} expected, got {packing!r}")
+    n = int(n_views)
+    if n < 2:
+        raise ValueError(f"n_views: at least 2 expected, got {n_views}")
+    h, w = frame.shape[:2]
+    axis_len = w if packing == "side-by-side" else h
+    if axis_len % n:
+        what = "columns" if packing == "side-by-side" else "rows"
+        raise ValueError(f"the frame is {w}x{h} px: its {axis_len} {what} do not split into {n} {packing} views "
+                         "of one size")
+    m = axis_len // n
+    if packing == "side-by-side":
+        views = [frame[:, c * m:(c + 1) * m] for c in range(n)]
+    elif packing == "top-bottom":
+        views = [frame[c * m:(c + 1) * m] for c in range(n)]
+    else:
+        views = [frame[c::n] for c in range(n)]
+    return [np.ascontiguousarray(v) for v in views]
+
 
 @dataclass(frozen=True)
 class FrameSource:
@@ -681,6 +717,8 @@ class FrameSource:
     videos : tuple of VideoInfo or None  per camera, what :func:`heartcv.video.check_videos` found by decoding its
                                          whole video (frame count, size, rate, each frame's container time);
                                          None for image folders
+    packing : str or None                one of :data:`PACKINGS` when every frame holds all the cameras' views
+                                         (one image folder or one video, named in every camera's ``files``)
     """
 
     folder: Path
@@ -690,6 +728,7 @@ class FrameSource:
     files: tuple
     fps: float | None = None
     videos: tuple | None = None
+    packing: str | None = None
 
     @property
     def n_frames(self) -> int:
@@ -703,8 +742,9 @@ class FrameSource:
         """``[(camera name, frame name)]`` of the instants a camera has no image for."""
         if self.kind != "images":
             return []
-        return [(c, n) for c, fs in zip(self.camera_names, self.files) for n, f in zip(self.frame_names, fs)
-                if f is None]
+        files = self.files[:1] if self.packing else self.files
+        names = ("all cameras (packed)",) if self.packing else self.camera_names
+        return [(c, n) for c, fs in zip(names, files) for n, f in zip(self.frame_names, fs) if f is None]
 
 
 def camera_entries(folder: Path):
@@ -723,7 +763,8 @@ def camera_entries(folder: Path):
     return cams, videos
 
 
-def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras_source=None) -> FrameSource:
+def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras_source=None,
+                      packing=None) -> FrameSource:
     """List the cameras and instants of a sequence folder.
 
     Parameters
@@ -740,6 +781,10 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras
         (each such image is reported by
         :meth:`FrameSource.missing` and read as missing); more, and the cameras are taken to have different
         frame counts, which is an error.
+    packing : str, optional
+        One of :data:`PACKINGS`: the folder holds one source (one sub-folder of images, one video, or its own
+        images) whose every frame packs the views of all ``cameras`` (default two, ``cam0`` and ``cam1``), in
+        their order; :class:`FrameReader` splits the frames (:func:`unpack_views`).
 
     Every video is decoded once here (:func:`heartcv.video.check_videos`), before any frame is processed: a
     video that cannot be opened, is truncated or corrupt, changes its frame size or has timestamps that go
@@ -757,6 +802,8 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras
     if not folder.is_dir():
         raise HeartcvIOError(folder, "no such folder" if not folder.exists() else "not a folder")
     cams, videos = camera_entries(folder)
+    if packing is not None:
+        return _open_packed(folder, cams, videos, cameras, packing)
     entries = [(n, fs) for n, fs in cams] if cams else [(v.stem, [v]) for v in videos]
     found = [e[0] for e in entries]
     if cameras is not None:
@@ -789,6 +836,32 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras
                        tuple((e[1][0],) for e in entries), fps, tuple(infos))
 
 
+def _open_packed(folder: Path, cams, videos, cameras, packing) -> FrameSource:
+    """:func:`open_frame_source` of a folder whose one source packs every camera's view into each frame."""
+    from .video import check_videos
+
+    if packing not in PACKINGS:
+        raise ValueError(f"packing: one of {PACKINGS} expected, got {packing!r}")
+    names = tuple(cameras) if cameras is not None else ("cam0", "cam1")
+    if len(names) < 2:
+        raise HeartcvIOError(folder, f"{len(names)} camera(s) ({list(names)}) to unpack from {packing} frames; at "
+                                     "least 2 expected")
+    own = list_image_folder(folder) if not cams and not videos else []
+    sources = [f"{n}/" for n, _ in cams] + [v.name for v in videos] + (["its own images"] if own else [])
+    if len(sources) != 1:
+        raise HeartcvIOError(folder, f"holds {len(sources)} image sources ({', '.join(sources) or 'none'}); packed "
+                                     f"{packing} frames are read from one sub-folder of images or one video holding "
+                                     "all the views")
+    C = len(names)
+    if videos:
+        (info,) = check_videos(videos)
+        fps = info.fps if info.fps and info.fps > 0 else None
+        return FrameSource(folder, "video", names, tuple(f"frame{k:06d}" for k in range(info.n_frames)),
+                           ((videos[0],),) * C, fps, (info,) * C, packing)
+    files = tuple(cams[0][1] if cams else own)
+    return FrameSource(folder, "images", names, tuple(p.stem for p in files), (files,) * C, packing=packing)
+
+
 class FrameReader:
     """Read the instants of a :class:`FrameSource` in order, all cameras at once (threads for image files).
 
@@ -797,7 +870,9 @@ class FrameReader:
     ``problems`` the messages (each naming the file) for those. Use as a context manager (videos are closed).
     Videos are read with :class:`heartcv.video.VideoReader` (frame ``k`` is the ``k``-th decoded frame); a
     source whose videos were not checked yet (``source.videos`` None) is checked with
-    :func:`heartcv.video.check_videos` on entering, before any frame is read.
+    :func:`heartcv.video.check_videos` on entering, before any frame is read. A packed source
+    (``source.packing``) is read once per instant and split into the cameras' views (:func:`unpack_views`); a
+    frame that does not split, or whose views do not have the expected sizes, is a problem of every camera.
 
     Parameters
     ----------
@@ -822,9 +897,10 @@ class FrameReader:
         if self.source.kind == "video":
             from .video import VideoReader, check_videos
 
+            files = self.source.files[:1] if self.source.packing else self.source.files
             if self.source.videos is None:
-                check_videos([f[0] for f in self.source.files])
-            self._videos = [VideoReader(f[0]) for f in self.source.files]
+                check_videos([f[0] for f in files])
+            self._videos = [VideoReader(f[0]) for f in files]
         self._pool = ThreadPoolExecutor(self.workers)
         return self
 
@@ -859,10 +935,51 @@ class FrameReader:
             return None, f"{video.path}: frame {k} is {img.shape[1]}x{img.shape[0]} px, {size[0]}x{size[1]} expected"
         return img, None
 
+    def read_packed(self, k):
+        """``(frame, problem)``: the whole frame of instant ``k`` of a packed source, unsplit and unchecked (None
+        and the message naming the file where it is missing or does not decode)."""
+        if self._pool is None:
+            raise RuntimeError("FrameReader: use it as a context manager")
+        if not self.source.packing:
+            raise ValueError("read_packed: the source is not packed")
+        if self.source.kind == "images":
+            path = self.source.files[0][k]
+            if path is None:
+                return None, f"{self.source.folder}: no packed image for instant {self.source.frame_names[k]}"
+            try:
+                return read_image(path, self.mode), None
+            except HeartcvIOError as exc:
+                return None, str(exc)
+        video = self._videos[0]
+        try:
+            img = video.read(k, gray=self.mode == "gray")
+        except HeartcvIOError as exc:
+            return None, str(exc)
+        return (img, None) if img is not None else (None, f"{video.path}: frame {k} cannot be decoded")
+
+    def _read_unpacked(self, k):
+        C = self.source.n_cameras
+        frame, problem = self.read_packed(k)
+        if frame is None:
+            return [None] * C, [problem]
+        where = self.source.files[0][k] if self.source.kind == "images" else f"{self.source.files[0][0]}: frame {k}"
+        try:
+            views = unpack_views(frame, self.source.packing, C)
+        except ValueError as exc:
+            return [None] * C, [f"{where}: {exc}"]
+        h, w = views[0].shape[:2]
+        bad = [c for c in range(C) if self.sizes[c] is not None and (w, h) != tuple(self.sizes[c])]
+        if bad:
+            expected = ", ".join(f"{self.sizes[c][0]}x{self.sizes[c][1]}" for c in bad)
+            return [None] * C, [f"{where}: its {self.source.packing} views are {w}x{h} px, {expected} expected"]
+        return views, []
+
     def read(self, k):
         """``(images, problems)`` of instant ``k``."""
         if self._pool is None:
             raise RuntimeError("FrameReader: use it as a context manager")
+        if self.source.packing:
+            return self._read_unpacked(k)
         C = self.source.n_cameras
         if self.source.kind == "images":
             res = list(self._pool.map(self._read_file, range(C), [self.source.files[c][k] for c in range(C)],
