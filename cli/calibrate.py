@@ -53,6 +53,12 @@ MAX_JOBS = 1024
 @click.option("--intrinsic-views", "intrinsic_folder", type=click.Path(file_okay=False), default=None,
               metavar="DIR", help="Recordings seen by one camera each (DIR/CAM/ images or DIR/CAM.mp4, named like "
                                   "the cameras): used for that camera's intrinsics.")
+@click.option("--packed", type=click.Choice(("side-by-side", "top-bottom", "rows")), default=None,
+              help="FOLDER holds one video or one folder of images whose every frame packs the views of all the "
+                   "cameras (side by side, top to bottom, or in interleaved rows); named by --packed-cameras.")
+@click.option("--packed-cameras", default="cam0,cam1", show_default=True, metavar="NAME,NAME[,...]",
+              help="With --packed: the cameras' names, one per view in packing order (left to right, top to bottom, "
+                   "the first row's field first).")
 @click.option("--folds", type=Int(0, 100), default=5, show_default=True,
               help="k of the k-fold check of the uncertainties (0: none).")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, metavar="DIR",
@@ -60,13 +66,14 @@ MAX_JOBS = 1024
 @json_opt
 @click.pass_context
 def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, min_views, jobs, intrinsics_file,
-              hold, timestamps_file, intrinsic_folder, folds, report_dir, as_json):
+              hold, timestamps_file, intrinsic_folder, packed, packed_cameras, folds, report_dir, as_json):
     """Calibrate the cameras of FOLDER: intrinsics, distortion and cam_from_rig of every camera, in the frame
     of the first camera, from views of the target in TARGET.
 
     FOLDER holds one sub-folder of images per camera (cam0/, cam1/, ...; the same file name in two folders is
-    the same instant) or one video file per camera (frames with the same index are the same instant). Cameras
-    are taken in natural name order; the first is the rig frame. Unreadable images, and images whose size
+    the same instant) or one video file per camera (frames with the same index are the same instant); with
+    --packed, one video or folder of images whose frames hold all the views. Cameras are taken in natural name
+    order (--packed: in packing order); the first is the rig frame. Unreadable images, and images whose size
     differs from the rest of their camera, are named in a warning and skipped.
 
     Exit 1 when the calibration fails: the target is found in no image, a camera has too few usable views
@@ -80,15 +87,21 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
               "--intrinsic-views": intrinsic_folder}
     exports = _guard(out, folder, target_file, {k: v for k, v in inputs.items() if v}, report_dir)
     spec = read_target(target_file)
-    cameras = _find_cameras(Path(folder))
+    packing = _packing(packed, packed_cameras, timestamps_file)
+    cameras = _find_cameras(Path(folder)) if packing is None else _find_packed(Path(folder), packing)
     names = [c[0] for c in cameras]
     given, held = _given_intrinsics(intrinsics_file, hold, names)
     extra = _find_intrinsic_views(intrinsic_folder, names)
-    infos = _check_videos(cameras + [e for e in extra if e[1] == "video"])
+    infos = _check_videos((cameras[:1] if packing else cameras) + [e for e in extra if e[1] == "video"])
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     jobs = jobs or min(os.cpu_count() or 1, 8)
-    detections, sizes, view_names, used_files = _detect_all(cameras, spec, every, jobs, verbosity, infos)
-    times = _frame_times(timestamps_file, Path(folder), cameras, infos, every, len(view_names))
+    if packing is None:
+        detections, sizes, view_names, used_files = _detect_all(cameras, spec, every, jobs, verbosity, infos)
+        times = _frame_times(timestamps_file, Path(folder), cameras, infos, every, len(view_names))
+    else:
+        detections, sizes, view_names, used_files = _detect_packed(cameras, packing[0], spec, every, jobs,
+                                                                   verbosity, infos)
+        times = None                                      # the views of one frame are simultaneous
     if extra:
         detections, view_names, more = _append_intrinsic_views(detections, view_names, extra, names, spec, jobs,
                                                                verbosity, infos)
@@ -270,6 +283,114 @@ def _find_cameras(folder: Path):
     if len(set(names)) != len(names) or any(any(ch.isspace() for ch in n) for n in names):
         raise InputError(folder, f"camera names must be unique and without spaces, got {names}", "FOLDER")
     return cams
+
+
+def _packing(packed, packed_cameras, timestamps_file):
+    """(layout, camera names) of --packed, or None; exit 2 for bad names or --timestamps with --packed."""
+    if packed is None:
+        return None
+    names = [n.strip() for n in str(packed_cameras).split(",")]
+    if len(names) < 2 or len(set(names)) != len(names) or any(not n or any(ch.isspace() for ch in n) for n in names):
+        raise BadInput(f"--packed-cameras: at least 2 unique names without spaces, separated by commas, expected; "
+                       f"got {packed_cameras!r}")
+    if timestamps_file:
+        raise BadInput("--timestamps: the views of a --packed frame are simultaneous; per-camera frame times apply "
+                       "to one video per camera")
+    return packed, names
+
+
+def _find_packed(folder: Path, packing):
+    """[(name, kind, paths)] of a packed FOLDER: every camera of ``packing``'s names with the one source's files
+    (heartcv.io.open_frame_source, packed)."""
+    from heartcv.io import open_frame_source, read_image, unpack_views
+    from heartcv.tracker.files import InputError
+
+    if not folder.is_dir():
+        raise InputError(folder, "no such folder" if not folder.exists() else "not a folder", "FOLDER")
+    layout, names = packing
+    src = open_frame_source(folder, cameras=names, packing=layout)
+    if src.kind == "video":
+        return [(n, "video", [src.files[0][0]]) for n in names]
+    for path in src.files[0]:                           # the first readable image must split into the views
+        try:
+            frame = read_image(path, mode="unchanged")
+        except InputError:
+            continue                                    # skipped later, with a warning naming it
+        try:
+            unpack_views(frame, layout, len(names))
+        except ValueError as exc:
+            raise _packed_error(path, exc) from None
+        break
+    return [(n, "images", list(src.files[0])) for n in names]
+
+
+def _read_and_detect_packed(path, layout, n, spec):
+    """[(size, Detection)] of the views of a packed image file, or [(None, message)] * n where it cannot be read
+    or split."""
+    from heartcv.io import read_image, unpack_views
+    from heartcv.tracker.files import InputError
+
+    try:
+        views = unpack_views(read_image(path, mode="unchanged"), layout, n)
+    except (InputError, ValueError) as exc:  # skipped with a warning naming it
+        return [(None, f"{path}: {exc}" if isinstance(exc, ValueError) else str(exc))] * n
+    return [_detect_view(v, spec) for v in views]
+
+
+def _detect_view(view, spec):
+    from heartcv.detect import detect
+
+    return (view.shape[1], view.shape[0]), detect(view, spec)
+
+
+def _detect_packed(cameras, layout, spec, every, jobs, verbosity, infos=None):
+    """:func:`_detect_all` of one packed source whose frames hold every camera's view."""
+    from heartcv.io import natural_key, unpack_views
+    from heartcv.video import iter_frames
+
+    n, (_, kind, paths) = len(cameras), cameras[0]
+    results, files = {}, {}
+    if kind == "images":
+        ordered = sorted(paths, key=lambda p: natural_key(p.name))[::every]
+        names = [p.stem for p in ordered]
+        with ThreadPoolExecutor(jobs) as pool:
+            done = pool.map(_read_and_detect_packed, ordered, [layout] * len(ordered), [n] * len(ordered),
+                            [spec] * len(ordered))
+            with progress(done, "detecting", len(ordered), verbosity) as it:
+                for v, res in enumerate(it):
+                    for c in range(n):
+                        results[c, v], files[c, v] = res[c], ordered[v]
+    else:
+        path = paths[0]
+        info = (infos or {}).get(str(path))
+        total = None if info is None else -(-info.n_frames // every)
+        with ThreadPoolExecutor(jobs) as pool:
+            def detected():
+                pending = []
+                for k, frame in iter_frames(path, every):
+                    try:
+                        views = unpack_views(frame, layout, n)
+                    except ValueError as exc:
+                        raise _packed_error(path, exc) from None
+                    pending.append((k // every, [pool.submit(_detect_view, v, spec) for v in views]))
+                    if len(pending) >= 2 * jobs:
+                        v, futs = pending.pop(0)
+                        yield v, [f.result() for f in futs]
+                for v, futs in pending:
+                    yield v, [f.result() for f in futs]
+
+            with progress(detected(), "detecting", total, verbosity) as it:
+                for v, res in it:
+                    for c in range(n):
+                        results[c, v], files[c, v] = res[c], path
+        names = [f"frame{v * every:06d}" for v in range(max((v for _, v in results), default=-1) + 1)]
+    return _assemble(cameras, names, results, files)
+
+
+def _packed_error(path, exc):
+    from heartcv.tracker.files import InputError
+
+    return InputError(path, str(exc), "--packed")
 
 
 def _instants(cameras, every):
