@@ -16,7 +16,7 @@ from pathlib import Path
 
 import click
 
-from .options import BadInput, Int, emit_json, guard_outputs, json_opt
+from .options import BadInput, Int, emit_json, guard_outputs, json_opt, seed_opt
 
 log = logging.getLogger(__name__)
 
@@ -42,14 +42,22 @@ LEVEL = 0.95  # NIS bands
 @click.option("--image", "images", multiple=True, type=click.Path(dir_okay=False),
               help="A PNG to show in the report, copied into it (e.g. a frame of `heartcv measure --overlay` with "
                    "the tracked points); repeatable.")
+@click.option("--resamples", type=Int(0, 1_000_000), default=2000, show_default=True,
+              help="Bootstrap resamples of the 95 % intervals of the error ratios (to hold, GE / KF): circular "
+                   "blocks of frames, drawn with --seed; 0: no intervals.")
+@seed_opt
 @json_opt
-def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, as_json):
+def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, resamples, seed, as_json):
     """Compare the estimate files ESTIMATES (`heartcv track` outputs of one measurement file): one-step
     prediction error, parameter trajectories with ±2σ bands, NIS with its χ² band, error against the truth,
     step times. Writes the folder OUTPUT atomically."""
+    import numpy as np
+
     from heartcv.tracker import metrics as tm
     from heartcv.tracker.files import atomic_folder
 
+    if 0 < resamples < 100:
+        raise BadInput(f"--resamples: 0 (no intervals) or at least 100 expected, got {resamples}")
     inputs = {"ESTIMATES" if len(estimates) == 1 else f"ESTIMATES #{i + 1}": p for i, p in enumerate(estimates)}
     inputs.update({"--truth": truth_file, "--measurements": meas_file})
     inputs.update({f"--image #{i + 1}": p for i, p in enumerate(images)})
@@ -66,7 +74,8 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, a
                                   "heartcv track recorded them); truth error of the one-step predictions only")
     fit_frames = _fit_frames(runs)
     compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
-                               truth["theta"] if truth else None, LEVEL, fit_frames)
+                               truth["theta"] if truth else None, LEVEL, fit_frames,
+                               rng=np.random.default_rng(seed) if resamples else None, resamples=resamples or 100)
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
     metrics["tracks"] = _track_motion(meas_file, runs)
     metrics.update(_provenance(runs, truth_file, meas_file))
@@ -430,7 +439,8 @@ PER_ESTIMATOR_KEYS = (
     "prediction_error_after_fit_mean_m", "prediction_error_after_fit_count",
     "prediction_error_after_fit_continuing_mean_m", "prediction_error_after_fit_continuing_count",
     "heldout_prediction_error_after_fit_mean_m", "log_likelihood_per_point", "log_likelihood_points",
-    "log_likelihood_within_fit_per_point", "log_likelihood_after_fit_per_point")
+    "log_likelihood_within_fit_per_point", "log_likelihood_after_fit_per_point", "ratio_to_hold_interval",
+    "heldout_ratio_to_hold_interval")
 
 
 def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
@@ -463,6 +473,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
         "ratio_ge_to_kf_prediction_error": compared["ratio_ge_to_kf_prediction_error"],
         "ratio_ge_to_kf_truth_error": compared["ratio_ge_to_kf_truth_error"],
         "difference_ge_minus_kf_log_likelihood_per_point": compared["difference_ge_minus_kf_log_likelihood_per_point"],
+        "ratio_ge_to_kf_prediction_error_interval": compared["ratio_ge_to_kf_prediction_error_interval"],
         "fit_frames": compared["fit_frames"],
     }
 

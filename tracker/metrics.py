@@ -60,6 +60,9 @@ __all__ = [
     "FieldPrediction",
     "field_ar_prediction",
     "heldout_neighbour_oracle",
+    "optimal_block_length",
+    "paired_ratio_interval",
+    "BOOTSTRAP_RESAMPLES",
 ]
 
 
@@ -335,6 +338,15 @@ def log_likelihood_statistics(est: EstimateSet, fit_frames: int | None = None) -
     return out
 
 
+def _split_norms(est: EstimateSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The prediction error norms (c, P) of the completed steps of the points used in the updates and of the
+    held-out points (``meta['heldout_points']``), each NaN elsewhere, and the held-out mask (P,)."""
+    c = completed(est)
+    norms = error_norms(np.asarray(est.innovations)[:c])
+    held = np.isin(np.asarray(est.point_ids), np.asarray(est.meta.get("heldout_points") or [], dtype=np.int64))
+    return np.where(held[None, :], np.nan, norms), np.where(held[None, :], norms, np.nan), held
+
+
 def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.95, fit_frames: int | None = None
                       ) -> dict:
     """All per-run metrics of one estimate set (only its completed steps).
@@ -371,10 +383,7 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
     ``nis_hi``, ``theta``, ``theta_std``, ``step_time``.
     """
     c = completed(est)
-    norms = error_norms(np.asarray(est.innovations)[:c])
-    held = np.isin(np.asarray(est.point_ids), np.asarray(est.meta.get("heldout_points") or [], dtype=np.int64))
-    held_norms = np.where(held[None, :], norms, np.nan)
-    norms = np.where(held[None, :], np.nan, norms)      # the prediction error of the points used in the updates
+    norms, held_norms, held = _split_norms(est)
     mean, var, count = per_step_stats(norms)
     pooled = pooled_stats(norms[1:])
     hp = pooled_stats(held_norms[1:]) if held.any() else {"mean": None, "rms": None, "count": 0}
@@ -426,6 +435,106 @@ def estimator_metrics(est: EstimateSet, truth_positions=None, level: float = 0.9
         "theta": theta, "theta_std": theta_std, "step_time": np.asarray(est.step_time, float)[:c],
     }
     return out
+
+
+# -- confidence intervals of error ratios (a circular block bootstrap over frames) ---------------------------------
+#: Bootstrap resamples of :func:`paired_ratio_interval` (``heartcv report --resamples``)
+BOOTSTRAP_RESAMPLES = 2000
+
+
+def optimal_block_length(x) -> float:
+    """The block length (in samples, >= 1) of a circular block bootstrap of the mean of the series ``x``, chosen
+    automatically: Politis & White (2004, Econometric Reviews 23:53-70) with the correction of Patton, Politis &
+    White (2009, Econometric Reviews 28:372-375).
+
+    With R(k) the sample autocovariances, the flat-top kernel ``lam(t) = 1`` for ``|t| <= 1/2``, ``2 (1 - |t|)``
+    for ``1/2 < |t| <= 1``, and M twice the smallest lag m after which ``K_N = max(5, floor(sqrt(log10 n)))``
+    consecutive autocorrelations are all below ``2 sqrt(log10 n / n)`` (at most ``ceil(sqrt n) + K_N``):
+    ``G = sum_{|k|<=M} lam(k/M) |k| R(k)``, ``g = sum_{|k|<=M} lam(k/M) R(k)``, ``D = (4/3) g^2`` and
+    ``b = (2 G^2 / D)^(1/3) n^(1/3)``, capped at ``min(3 sqrt n, n / 3)``. A white series gives 1; an AR(1)
+    with coefficient phi tends to ``(6 phi^2 / (1 - phi^2)^2)^(1/3) n^(1/3)``.
+    """
+    x = np.asarray(x, float).reshape(-1)
+    n = x.size
+    if n < 4:
+        return 1.0
+    e = x - x.mean()
+    r0 = float(e @ e) / n
+    if not r0 > 0:
+        return 1.0
+    kn = max(5, int(np.sqrt(np.log10(n))))
+    m_max = min(int(np.ceil(np.sqrt(n))) + kn, n - 1)
+    acv = np.array([float(e[k:] @ e[:n - k]) / n for k in range(m_max + 1)])
+    rho = np.abs(acv / r0)
+    threshold = 2.0 * np.sqrt(np.log10(n) / n)
+    m_hat = next((m for m in range(m_max - kn + 1) if (rho[m + 1:m + 1 + kn] < threshold).all()), None)
+    M = m_max if m_hat is None else min(2 * max(m_hat, 1), m_max)
+    k = np.arange(1, M + 1)
+    lam = np.where(k / M <= 0.5, 1.0, 2.0 * (1.0 - k / M))
+    G = 2.0 * float(np.sum(lam * k * acv[1:M + 1]))
+    g = r0 + 2.0 * float(np.sum(lam * acv[1:M + 1]))
+    if not g > 0:
+        return 1.0
+    b = (2.0 * G * G / (4.0 / 3.0 * g * g)) ** (1.0 / 3.0) * n ** (1.0 / 3.0)
+    return float(np.clip(b, 1.0, max(1.0, min(3.0 * np.sqrt(n), n / 3.0))))
+
+
+def paired_ratio_interval(numerator, denominator, rng: np.random.Generator, *, level: float = 0.95,
+                          resamples: int = BOOTSTRAP_RESAMPLES, block: float | None = None) -> dict | None:
+    """The ratio of two runs' mean errors over the observations both have, with a bootstrap confidence interval.
+
+    Parameters
+    ----------
+    numerator, denominator : ndarray (K, P)
+        Error norms of two runs on the same points and frames (NaN where a run has none); the rows are the frames
+        to use (e.g. k >= 1).
+    rng : numpy.random.Generator
+    level : float
+        Two-sided level of the percentile interval.
+    resamples : int
+        Bootstrap resamples (>= 100).
+    block : float, optional
+        Block length in frames; default :func:`optimal_block_length` of the ratio's linearisation
+        ``A_k - r B_k`` (A_k, B_k the frame sums of the two errors, r the ratio).
+
+    The frames are resampled, not the points: the errors of one frame share its motion, and those of nearby frames
+    are correlated (a heartbeat, a drifting view), so frames are drawn in circular blocks of consecutive frames
+    (Politis & Romano 1992), which keeps that correlation inside a block. Each resample's ratio is
+    ``sum A* / sum B*``; the interval is its ``(1 - level)/2`` and ``(1 + level)/2`` quantiles. It covers the
+    uncertainty from the frames observed, not that from which tracks were measured or held out.
+
+    Returns
+    -------
+    dict or None
+        ``ratio``, ``low``, ``high``, ``level``, ``block_frames``, ``resamples``, ``frames`` and ``observations``
+        (the common (k, p)); None when no observation is common or the denominator's errors sum to zero.
+    """
+    _check_level(level)
+    a, b = np.asarray(numerator, float), np.asarray(denominator, float)
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError(f"numerator, denominator: (K, P) arrays of one shape expected, got {a.shape}, {b.shape}")
+    resamples = int(resamples)
+    if resamples < 100:
+        raise ValueError(f"resamples: at least 100 expected, got {resamples}")
+    common = np.isfinite(a) & np.isfinite(b)
+    A, B = np.where(common, a, 0.0).sum(axis=1), np.where(common, b, 0.0).sum(axis=1)
+    K = A.size
+    if not common.any() or not B.sum() > 0:
+        return None
+    ratio = float(A.sum() / B.sum())
+    length = optimal_block_length(A - ratio * B) if block is None else float(block)
+    if not (np.isfinite(length) and length >= 1):
+        raise ValueError(f"block: a length of at least 1 frame expected, got {block}")
+    L = min(int(round(length)), K)
+    n_blocks = -(-K // L)
+    starts = rng.integers(0, K, size=(resamples, n_blocks))
+    idx = ((starts[:, :, None] + np.arange(L)[None, None, :]) % K).reshape(resamples, -1)[:, :K]
+    num, den = A[idx].sum(axis=1), B[idx].sum(axis=1)
+    ok = den > 0
+    boot = num[ok] / den[ok]
+    lo, hi = np.quantile(boot, [(1.0 - level) / 2.0, (1.0 + level) / 2.0])
+    return {"ratio": ratio, "low": float(lo), "high": float(hi), "level": float(level), "block_frames": L,
+            "resamples": resamples, "frames": int(K), "observations": int(common.sum())}
 
 
 def _ratio(a, b) -> float | None:
@@ -491,7 +600,8 @@ def theta_truth_agreement(theta, theta_std, truth_theta, estimated, *, first: in
 
 
 def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=None, level: float = 0.95,
-                 fit_frames: int | None = None) -> dict:
+                 fit_frames: int | None = None, rng: np.random.Generator | None = None,
+                 resamples: int = BOOTSTRAP_RESAMPLES) -> dict:
     """The metrics of several runs over one sequence (the numbers of ``heartcv report``'s metrics.json).
 
     Parameters
@@ -506,6 +616,8 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         Level of the NIS bands.
     fit_frames : int, optional
         The fitted frames, one split for every run (:func:`estimator_metrics`).
+    rng : numpy.random.Generator, optional
+        With it, the error ratios get 95 % bootstrap intervals (:func:`paired_ratio_interval`, ``resamples``).
 
     Returns
     -------
@@ -521,7 +633,11 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         ``ratio_ge_to_kf_prediction_error`` and ``ratio_ge_to_kf_truth_error`` (runs labelled ``ge`` and
         ``kf``; None without both or a non-positive denominator); ``difference_ge_minus_kf_log_likelihood_per_point``
         (the GE's :func:`log_likelihood_statistics` per point minus the KF's, None unless both ran their updates on
-        the same number of points); ``fit_frames`` (as given).
+        the same number of points); ``fit_frames`` (as given). With ``rng``: per run ``ratio_to_hold_interval`` and
+        ``heldout_ratio_to_hold_interval`` (its error over the observations it shares with the run labelled
+        ``hold``, of the points used in the updates and of the held-out points, frames k >= 1), and
+        ``ratio_ge_to_kf_prediction_error_interval``, each a :func:`paired_ratio_interval` or None (no such run,
+        other points, nothing in common); without ``rng`` these keys are None.
     """
     truth_positions = truth_positions or {}
     per = {}
@@ -555,6 +671,9 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
             return None
         return ge["log_likelihood_per_point"] - kf["log_likelihood_per_point"]
 
+    intervals = _ratio_intervals(runs, rng, resamples)
+    for label, m in per.items():
+        m["ratio_to_hold_interval"], m["heldout_ratio_to_hold_interval"] = intervals["hold"].get(label, (None, None))
     return {
         "per_run": per,
         "sequence": {"frames": int(t.size), "duration_s": float(t[-1] - t[0]), "points": int(first.point_ids.size),
@@ -564,8 +683,33 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         "ratio_ge_to_kf_prediction_error": ratio("prediction_error_mean_m"),
         "ratio_ge_to_kf_truth_error": ratio("truth_error_mean_m"),
         "difference_ge_minus_kf_log_likelihood_per_point": ll_difference(),
+        "ratio_ge_to_kf_prediction_error_interval": intervals["ge_kf"],
         "fit_frames": None if fit_frames is None else int(fit_frames),
     }
+
+
+def _ratio_intervals(runs: dict, rng, resamples) -> dict:
+    """``{"hold": {label: (interval used, interval held out)}, "ge_kf": interval}`` of :func:`compare_runs`;
+    empty / None without ``rng``. Runs are paired only on the same points (point ids) and frames."""
+    out = {"hold": {}, "ge_kf": None}
+    if rng is None:
+        return out
+    norms = {}
+    for label, est in runs.items():
+        used, held, _ = _split_norms(est)
+        norms[label] = (np.asarray(est.point_ids), used[1:], held[1:])
+
+    def pair(x, y, i):
+        (ids_x, *nx), (ids_y, *ny) = norms[x], norms[y]
+        if not np.array_equal(ids_x, ids_y) or nx[i].shape != ny[i].shape:
+            return None
+        return paired_ratio_interval(nx[i], ny[i], rng, resamples=resamples)
+
+    if "hold" in runs:
+        out["hold"] = {label: (pair(label, "hold", 0), pair(label, "hold", 1)) for label in runs if label != "hold"}
+    if "ge" in runs and "kf" in runs:
+        out["ge_kf"] = pair("ge", "kf", 0)
+    return out
 
 
 def _apply(T, X) -> np.ndarray:
