@@ -44,7 +44,7 @@ __all__ = [
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
     "read_npz_meta", "check_provenance", "show",
-    "write_npz", "read_csv_table", "get_matrix",
+    "write_npz", "read_csv_table", "get_matrix", "software_versions",
 ]
 
 LIMITS = {
@@ -822,13 +822,35 @@ def check_provenance(d: dict, path=None, prefix: str = "") -> None:
         raise InputError(path, "a mapping of input role -> 'sha256:<hex>' expected", f"{prefix}inputs_hash")
 
 
+#: Libraries whose version a file records when the writing process has loaded them (:func:`software_versions`)
+SOFTWARE_MODULES = (("scipy", "scipy"), ("opencv", "cv2"), ("torch", "torch"), ("kornia", "kornia"),
+                    ("pycolmap", "pycolmap"))
+
+
+def software_versions() -> dict:
+    """``{"python": ..., "numpy": ..., ...}``: the versions of Python, NumPy and of the libraries of
+    :data:`SOFTWARE_MODULES` this process has loaded, the software that shaped a stage's numbers (the tracks of
+    real frames depend on the OpenCV build, the filters' last digits on the linear algebra). Recorded in every
+    ``.npz`` file's metadata as ``software`` (docs/formats.md §1.8)."""
+    import platform
+    import sys
+
+    out = {"python": platform.python_version(), "numpy": np.__version__}
+    for name, module in SOFTWARE_MODULES:
+        version = getattr(sys.modules.get(module), "__version__", None)
+        if version is not None:
+            out[name] = str(version)
+    return out
+
+
 def write_npz(path, fmt: tuple, arrays: dict, meta: dict) -> None:
-    """Write arrays plus ``meta_json`` (with ``format``, ``format_version``, ``heartcv_version``) atomically,
-    compressed. None arrays are left out."""
+    """Write arrays plus ``meta_json`` (with ``format``, ``format_version``, ``heartcv_version`` and ``software``,
+    :func:`software_versions`) atomically, compressed. None arrays are left out."""
     from . import __version__
 
     meta = dict(meta)
-    meta.update({"format": fmt[0], "format_version": fmt[1], "heartcv_version": __version__})
+    meta.update({"format": fmt[0], "format_version": fmt[1], "heartcv_version": __version__,
+                 "software": software_versions()})
     payload = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
     for k, v in payload.items():
         if v.dtype.hasobject:

@@ -304,7 +304,12 @@ def test_bundle_matches_scipy_least_squares():
     x0 = np.r_[intr0.ravel(), np.zeros(6 + 6 * prob.n_view)]
     ref = least_squares(fun, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     assert ba.converged
-    np.testing.assert_allclose(ba.intrinsics.ravel()[:4], ref.x[:4], rtol=1e-8)
+    # the same minimum: every intrinsic of camera 0 within 1e-4 of its standard deviation (from scipy's Jacobian at
+    # its solution; MINPACK of SciPy 1.17.1 stops 6e-6 px from ours, 1e-5 of a std, earlier releases nearer)
+    J = ref.jac
+    std = np.sqrt(np.diag(np.linalg.pinv(J.T @ J)) * 2 * ref.cost / (J.shape[0] - J.shape[1]))[:4]
+    assert (np.abs(ba.intrinsics.ravel()[:4] - ref.x[:4]) < 1e-4 * std).all()
+    np.testing.assert_allclose(ba.intrinsics.ravel()[:4], ref.x[:4], rtol=1e-7)
     s_ref = s0.moved(ref.x[:n_i].reshape(intr.shape) - intr0, ref.x[n_i:n_i + 6].reshape(1, 6),
                      ref.x[n_i + 6:].reshape(-1, 6))
     np.testing.assert_allclose(ba.cam_from_rig[1, :3, 3], s_ref.tc[1], atol=1e-9)

@@ -158,10 +158,17 @@ def test_a_perturbed_initial_pose_converges_near_the_truth(paper_model, syntheti
     reg2 = register(meas, paper_model, initial=start)
     assert reg2.converged, reg2.message
     assert_close_to_truth(reg2, paper_model.mesh.geometry, reg.on_patch.sum())
-    # the half-turn about the normal is a symmetry: the representative nearest the start is returned
+    # the half-turn about the normal is a symmetry: the representative nearest the start is returned. The turn
+    # about the normal is determined only to tolerances()'s 0.5 deg, and where in that valley the solver stops
+    # depends on its path (with NumPy 2.4.6 / SciPy 1.17.1 it stops 0.24 deg from the mirror of the other start's
+    # solution, with the install before on it), so the two are compared at those tolerances, not to the last digit.
     reg3 = register(meas, paper_model, initial=HALF_TURN @ start)
+    assert reg3.converged, reg3.message
+    _, _, slide_tol, turn_tol = tolerances(paper_model.mesh.geometry, reg.on_patch.sum())
     rot, origin = errors(reg3.patch_from_rig, HALF_TURN @ reg2.patch_from_rig)
-    assert np.degrees(rot) < 0.01 and np.linalg.norm(origin) < 1e-5
+    assert rot < turn_tol and np.linalg.norm(origin) < slide_tol
+    rot_flipped, _ = errors(reg3.patch_from_rig, reg2.patch_from_rig)
+    assert np.degrees(rot_flipped) > 179.0
 
 
 def test_points_that_come_and_go_are_tracked_on_the_patch_frame(paper_model, synthetic):
