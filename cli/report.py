@@ -108,9 +108,14 @@ def _provenance(runs, truth_file, meas_file) -> dict:
     for role, p in (("truth", truth_file), ("measurements", meas_file)):
         if p:
             hashes[role] = file_hash(p)
+    from heartcv.tracker.files import software_versions
+
+    recorded = {k: r["est"].meta.get("software") for k, r in runs.items()}
+    if meas_file:
+        recorded["measurements"] = _measurements(meas_file).meta.get("software")
     return {"inputs": {"estimates": {k: str(r["path"]) for k, r in runs.items()}, "truth": truth_file,
                        "measurements": meas_file},
-            "inputs_hash": hashes}
+            "inputs_hash": hashes, "software": software_versions(), "inputs_software": recorded}
 
 
 def _check_images(images) -> None:

@@ -87,6 +87,7 @@ def _facts(doc) -> list:
         facts.append(f"Error of the measurements themselves against the truth: "
                      f"{mm(doc['measurement_truth_error_mean_m'])} (mean over the observations, k ≥ 1).")
     facts += [f"Note: {n}" for n in tr["notes"]]
+    facts += _software_facts(doc)
     facts.append("Errors are Euclidean norms per point; overall means over frames k ≥ 1 (frame 0 is predicted "
                  "from the prior). Truth error: of the filtered estimates (after each frame's update); pred. truth "
                  "error: of the one-step predictions. Both over the points seen in each frame, the observations "
@@ -115,6 +116,19 @@ def _hold_ratio_facts(doc) -> list:
             f"intervals (circular blocks of consecutive frames, their length chosen per ratio, {first['resamples']} "
             "resamples; they cover the sampling of the frames, not which tracks were measured or held out): "
             + "; ".join(parts) + "."]
+
+
+def _software_facts(doc) -> list:
+    """One line: the software each input file was written with (its ``software`` metadata), grouped."""
+    recorded = doc.get("inputs_software") or {}
+    groups: dict = {}
+    for role, sw in recorded.items():
+        key = ", ".join(f"{k} {v}" for k, v in sw.items()) if sw else "not recorded (written before heartcv did)"
+        groups.setdefault(key, []).append(role)
+    if not groups:
+        return []
+    return ["Software the inputs were written with: " + "; ".join(f"{', '.join(roles)}: {key}"
+                                                                 for key, roles in groups.items()) + "."]
 
 
 def _ablation_ratio(doc, label, base) -> str:

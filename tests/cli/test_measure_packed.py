@@ -146,6 +146,9 @@ def test_measure_packed_frames_equals_measure_of_separate_folders(scene, separat
     assert res.exit_code == 0, res.output
     arrays, meta = _arrays(out)
     assert meta["packed"] == layout and meta["camera_names"] == ["cam0", "cam1"]
+    import cv2
+
+    assert meta["software"]["opencv"] == cv2.__version__ and meta["software"]["numpy"] == np.__version__
     assert set(arrays) == set(separate)
     for k, v in separate.items():
         np.testing.assert_array_equal(arrays[k], v, err_msg=k)

@@ -72,3 +72,24 @@ def test_bad_resamples_exit_2(files, tmp_path, value):
     res = _report(files, tmp_path / "rep", "--resamples", value)
     assert res.exit_code == 2 and "--resamples" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "rep").exists()
+
+
+def test_the_software_of_every_input_is_recorded_and_reported(files, tmp_path):
+    """Every .npz records the versions it was written with (``meta.software``); the report lists them."""
+    import platform
+
+    import scipy
+
+    from heartcv.tracker.io import read_estimates
+
+    expected = {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__}
+    for name in ("ge", "kf", "hold"):
+        sw = read_estimates(files / f"{name}.npz").meta["software"]
+        assert {k: sw[k] for k in expected} == expected
+    assert _report(files, tmp_path / "rep", "--resamples", "0").exit_code == 0
+    doc = json.loads((tmp_path / "rep" / "metrics.json").read_text())
+    assert {k: doc["software"][k] for k in expected} == expected
+    assert set(doc["inputs_software"]) == {"ge", "kf", "hold"}
+    summary = (tmp_path / "rep" / "summary.md").read_text()
+    assert "Software the inputs were written with: ge, kf, hold: " in summary
+    assert f"numpy {np.__version__}" in summary and f"scipy {scipy.__version__}" in summary
