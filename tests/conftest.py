@@ -10,6 +10,16 @@ SAMPLES = ROOT / "sample_sequences"
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
+def assert_exit_2(res, out, *words):
+    """A CliRunner result of a refused command: exit 2, no traceback, every word in the message, ``out`` not
+    written."""
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output
+    for w in words:
+        assert w in res.output, (w, res.output)
+    assert not out.exists()
+
+
 def load_yaml(name):
     return yaml.safe_load((SAMPLES / name).read_text())
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from heartcv.cli.main import main
-from tests.conftest import SHARED_DATA
+from tests.conftest import SHARED_DATA, assert_exit_2
 
 DATA = SHARED_DATA / "opencv_stereo"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="shared data not available (opencv_stereo)")
@@ -118,20 +118,12 @@ def test_packed_top_bottom_video_with_named_cameras(target, tmp_path):
     assert a == b
 
 
-def _assert_exit_2(res, out, *words):
-    assert res.exit_code == 2, res.output
-    assert "Traceback" not in res.output
-    for word in words:
-        assert word in res.output, (word, res.output)
-    assert not out.exists()
-
-
 @pytest.mark.parametrize("names", ["cam0", "a,a", "a, ,b"])
 def test_bad_packed_camera_names_exit_2(target, tmp_path, names):
     (tmp_path / "seq" / "stereo").mkdir(parents=True)
     out = tmp_path / "rig.yaml"
     res = _calibrate(tmp_path / "seq", target, out, "--packed", "rows", "--packed-cameras", names)
-    _assert_exit_2(res, out, "--packed-cameras")
+    assert_exit_2(res, out, "--packed-cameras")
 
 
 def test_timestamps_with_packed_exit_2(target, tmp_path):
@@ -139,7 +131,7 @@ def test_timestamps_with_packed_exit_2(target, tmp_path):
     (tmp_path / "t.csv").write_text("camera,time_s\n")
     out = tmp_path / "rig.yaml"
     res = _calibrate(tmp_path / "seq", target, out, "--packed", "rows", "--timestamps", tmp_path / "t.csv")
-    _assert_exit_2(res, out, "--timestamps", "simultaneous")
+    assert_exit_2(res, out, "--timestamps", "simultaneous")
 
 
 def test_a_packed_image_that_does_not_split_exit_2(target, tmp_path):
@@ -149,7 +141,7 @@ def test_a_packed_image_that_does_not_split_exit_2(target, tmp_path):
     cv2.imwrite(str(tmp_path / "seq" / "stereo" / "0001.png"), np.zeros((48, 65), np.uint8))
     out = tmp_path / "rig.yaml"
     res = _calibrate(tmp_path / "seq", target, out, "--packed", "side-by-side")
-    _assert_exit_2(res, out, "0001.png", "--packed", "65x48", "do not split into 2")
+    assert_exit_2(res, out, "0001.png", "--packed", "65x48", "do not split into 2")
 
 
 def test_two_camera_folders_with_packed_exit_2(target, tmp_path):
@@ -160,4 +152,4 @@ def test_two_camera_folders_with_packed_exit_2(target, tmp_path):
         cv2.imwrite(str(tmp_path / "seq" / c / "0001.png"), np.zeros((48, 64), np.uint8))
     out = tmp_path / "rig.yaml"
     res = _calibrate(tmp_path / "seq", target, out, "--packed", "side-by-side")
-    _assert_exit_2(res, out, "2 image sources", "cam0/", "cam1/")
+    assert_exit_2(res, out, "2 image sources", "cam0/", "cam1/")

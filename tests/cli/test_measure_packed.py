@@ -15,6 +15,7 @@ import pytest
 
 from heartcv.cli.main import main
 from heartcv.io import FrameReader, open_frame_source, unpack_views
+from tests.conftest import assert_exit_2
 
 W, H = 160, 120
 LAYOUTS = ("side-by-side", "top-bottom", "rows")
@@ -188,18 +189,10 @@ def test_a_packed_video_equals_its_views_cut_by_opencv(scene, tmp_path):
 
 
 # -- bad packings ---------------------------------------------------------------------------------------------------
-def _assert_exit_2(res, out, *words):
-    assert res.exit_code == 2, res.output
-    assert "Traceback" not in res.output
-    for w in words:
-        assert w in res.output, (w, res.output)
-    assert not out.exists()
-
-
 def test_packed_on_a_folder_of_two_cameras_exit_2(scene, tmp_path):
     out = tmp_path / "m.npz"
     res = _measure(scene / "separate", scene / "rig.yaml", out, "--packed", "side-by-side")
-    _assert_exit_2(res, out, "2 image sources", "cam0/", "cam1/", "one sub-folder of images or one video")
+    assert_exit_2(res, out, "2 image sources", "cam0/", "cam1/", "one sub-folder of images or one video")
 
 
 def test_a_frame_that_does_not_split_exit_2_naming_it(scene, tmp_path):
@@ -210,10 +203,10 @@ def test_a_frame_that_does_not_split_exit_2_naming_it(scene, tmp_path):
     cv2.imwrite(str(tmp_path / "odd" / "000000.png"), frame)
     out = tmp_path / "m.npz"
     res = _measure(tmp_path / "odd", scene / "rig.yaml", out, "--packed", "side-by-side")
-    _assert_exit_2(res, out, "000000.png", "--packed", f"{2 * W - 1}x{H}", "do not split into 2")
+    assert_exit_2(res, out, "000000.png", "--packed", f"{2 * W - 1}x{H}", "do not split into 2")
 
 
 def test_views_of_another_size_than_the_rig_exit_2(scene, tmp_path):
     out = tmp_path / "m.npz"
     res = _measure(scene / "top-bottom", scene / "rig.yaml", out, "--packed", "side-by-side")  # 80x240 views
-    _assert_exit_2(res, out, "000000.png", f"{W // 2}x{2 * H}", f"{W}x{H}", "does not belong")
+    assert_exit_2(res, out, "000000.png", f"{W // 2}x{2 * H}", f"{W}x{H}", "does not belong")
