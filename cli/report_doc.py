@@ -97,8 +97,9 @@ def _facts(doc) -> list:
 
 def _interval(ci) -> str:
     """'1.013 (95 % interval 0.990–1.040, blocks of 12 frames)' of a :func:`tracker.metrics.paired_ratio_interval`."""
+    n = ci["block_frames"]
     return (f"{ci['ratio']:.3f} ({ci['level'] * 100:.0f} % interval {ci['low']:.3f}–{ci['high']:.3f}, blocks of "
-            f"{ci['block_frames']} frames)")
+            f"{n} frame{'' if n == 1 else 's'})")
 
 
 def _hold_ratio_facts(doc) -> list:
