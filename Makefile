@@ -20,13 +20,19 @@ $(STAMP): pyproject.toml
 	cd /tmp && $(abspath $(PY)) -c "import heartcv.tracker.files, heartcv.cli.main"
 	touch $(STAMP)
 
+# The tests run in TEST_JOBS processes (pytest-xdist), one test file per process at a time so that a file's shared
+# fixtures are built once: by default one per core, at most 4 (each process holds up to ~1.4 GB); TEST_JOBS=1 runs
+# them in this process, in file order.
+TEST_JOBS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ $$n -gt 4 ] && n=4; echo $$n)
+XDIST = $(if $(filter-out 0 1,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadfile,-p no:xdist)
+
 # lint first (ruff: pycodestyle, pyflakes, bugbear, import order; pyproject.toml [tool.ruff]), then the fast tests
 test: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(XDIST)
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m slow || [ $$? -eq 5 ]  # exit 5: no slow test collected yet
+	$(PY) -m pytest -q -m slow $(XDIST) || [ $$? -eq 5 ]  # exit 5: no slow test collected yet
 
 # the kornia backend on a CUDA device (skipped, with the reason, where torch sees none)
 test-gpu: $(STAMP)
