@@ -50,6 +50,8 @@ import zipfile
 import numpy as np
 import yaml
 
+from heartcv.calibration import opencv_threads
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_sequences"
 
@@ -172,25 +174,6 @@ def _short(filename: str) -> str:
     return filename
 
 
-@contextlib.contextmanager
-def _opencv_single_threaded():
-    """OpenCV single-threaded in this process while the block runs (a no-op where cv2 is not loaded). Its thread pool
-    does not survive ``fork``: a child forked after an earlier test ran a parallel OpenCV call hangs in its first
-    ``cv2.getNumThreads`` (found with tests/heartcv/test_calibration.py run before the fuzz tests: the valid target
-    seed's ``calibrate`` ran into its 60 s limit). With one thread at the fork no pool thread runs; parent and child
-    each restore the count after it and start a pool of their own (heartcv.render.parallel does the same)."""
-    cv2 = sys.modules.get("cv2")
-    if cv2 is None:
-        yield
-        return
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(before)
-
-
 class _Child:
     """One forked CLI run: started at once; ``read`` what it sends until EOF, then ``finish`` (or ``finish(killed=
     True)`` past its deadline)."""
@@ -204,7 +187,11 @@ class _Child:
         r, w = os.pipe()
         sys.stdout.flush()
         sys.stderr.flush()
-        with _opencv_single_threaded():
+        # OpenCV's thread pool does not survive fork: a child forked after an earlier test ran a parallel OpenCV call
+        # hangs in its first cv2.getNumThreads (tests/heartcv/test_calibration.py before the fuzz tests: the valid
+        # target seed's calibrate ran into its 60 s limit). Fork with one thread, so that no pool thread runs; parent
+        # and child each restore the count after it and start a pool of their own (as heartcv.render.parallel).
+        with opencv_threads(1):
             pid = os.fork()
         if pid == 0:                                  # the child: never returns
             code = 0
