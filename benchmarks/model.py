@@ -294,7 +294,7 @@ def _measurement_set(sim):
 
 
 def bench_kf(*, quick: bool = False) -> dict:
-    from heartcv.tracker.kalman import GaussianState, predict, update
+    from heartcv.tracker.kalman import GaussianState, predict, update, update_blocks
     from heartcv.tracker.simulate import simulate
     from heartcv.tracker.tracking import locate_points, run_kalman
 
@@ -360,6 +360,22 @@ def bench_kf(*, quick: bool = False) -> dict:
         t_mm = measure(lambda: np.matmul(a, bm, out=c), repeats=repeats, min_sample_s=min_sample)
         gflops = 2.0 * n**3 / t_mm.median / 1e9
 
+        # many points per frame (dense measurements): the low-rank block update against the dense Cholesky form,
+        # on the settled state of the paper model, random SPD 3 x 3 blocks and random rows (only the cost matters)
+        many = []
+        for p in ((50, 300) if quick else (50, 300, 1000)):
+            Hp = rng.standard_normal((3 * p, n))
+            Bp = rng.standard_normal((p, 3, 3))
+            blocks = Bp @ np.swapaxes(Bp, 1, 2) + 0.1 * np.eye(3)
+            Rp = np.zeros((p, 3, p, 3))
+            Rp[np.arange(p), :, np.arange(p), :] = blocks
+            Rp = Rp.reshape(3 * p, 3 * p)
+            yp = rng.standard_normal(3 * p)
+            reps = repeats if p <= 300 else 3
+            t_dense = measure(lambda: update(pred, yp, Hp, Rp), repeats=reps, min_sample_s=min_sample)
+            t_block = measure(lambda: update_blocks(pred, yp, Hp, blocks), repeats=reps, min_sample_s=min_sample)
+            many.append((p, t_dense, t_block))
+
     rows = [
         [f"run_kalman step (median of {steps.size} steps)", fmt_time(kf_step), "-", fmt_ratio(kf_step / t_mm.median)],
         ["run_kalman wall / frame", fmt_time(float(np.median(walls)) / K), "-",
@@ -375,6 +391,12 @@ def bench_kf(*, quick: bool = False) -> dict:
                 title="Kalman step on the paper model, single-threaded"))
     print(f"  KF step / DGEMM = {kf_step / t_mm.median:.2f}   (bare predict+update / DGEMM = "
           f"{t_pu.median / t_mm.median:.2f});  DGEMM {n}x{n}: {gflops:.2f} GFLOP/s (1 thread)")
+    print(table(["points (rows)", "update (dense S)", "update_blocks", "dense / blocks"],
+                [[f"{p} ({3 * p})", fmt_time(d.median), fmt_time(b.median), fmt_ratio(d.median / b.median)]
+                 for p, d, b in many],
+                title=f"Update with many points, state {n}: S never formed (kalman.update_blocks), single-threaded"))
+    out["many_points_update"] = [{"points": p, "rows": 3 * p, "dense": d.as_dict(), "blocks": b.as_dict(),
+                                  "dense_over_blocks": d.median / b.median} for p, d, b in many]
     out.update({
         "state_dim": int(n), "frames": int(K), "observed_rows": int(H.shape[0]), "simulate_s": t_sim,
         "run_kalman_step_median_s": kf_step, "run_kalman_step_p90_s": float(np.percentile(steps, 90)),

@@ -183,8 +183,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     if holdout:
         meta.update(holdout=holdout, seed=seed)
         if fitted is not None and meas.meta.get("late_points"):
-            meas = _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file,
-                                              model_file, full_block or input_block, meta)
+            meas, heldout = _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file,
+                                                       model_file, full_block or input_block, meta)
     rate = _fitted_heart_rate(fitted)
     if estimator in BASELINES:
         use_fit = estimator == "harmonic" and heart_rate_hz is None and rate
@@ -237,7 +237,7 @@ def _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, inpu
     (:func:`tracker.tracking.select_track_drift`) and records the selection in ``meta``."""
     from threadpoolctl import threadpool_limits
 
-    from heartcv.tracker.tracking import select_track_drift
+    from heartcv.tracker.tracking import DRIFT_GRID, select_track_drift
 
     if track_offsets is None:
         return None
@@ -245,6 +245,8 @@ def _drift(track_offsets, m, meas, fitted, references, adaptation, heldout, inpu
         meta["track_offsets"] = {"std_per_frame_m": track_offsets, "source": "--track-offsets"}
         return float(track_offsets)
     frames = fitted.frames if fitted is not None and fitted.frames else 100
+    log.info("track offsets: choosing their random walk by maximum likelihood (%d KF runs over the first %d frames)",
+             len(DRIFT_GRID) + 2, min(frames, meas.n_frames))
     with threadpool_limits(1):
         sel = select_track_drift(m, meas, None if fitted is None else fitted.theta, frames=frames,
                                  references=references, adaptation=adaptation, heldout=heldout,
@@ -487,28 +489,42 @@ def _with_params(m, meas, fitted, measurements, params_file, model_file, input_b
 
 def _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file, model_file,
                                input_block, meta):
-    """``meas`` with the held-out tracks born after the fitted frames given references from their first frames
-    only (their later measurements never enter; every other point's reference unchanged). Records their ids in
-    ``meta['heldout_late_references']``; keeps ``meas`` (with a warning) if that changed the points kept."""
+    """``(meas, heldout)`` with the held-out tracks born after the fitted frames given references from their first
+    frames only (their later measurements never enter; every other point's reference unchanged). A held-out late
+    track whose first frames put it off the patch (or on it, where all its frames did not) is left out of the run:
+    predicting it from a reference its later measurements made would use them. Records the ids in
+    ``meta['heldout_late_references']`` (``left_out``: those left out)."""
     import numpy as np
 
-    from heartcv.tracker.fit import LATE_REFERENCE_FRAMES
+    from heartcv.tracker.fit import LATE_REFERENCE_FRAMES, _subset_points
     from heartcv.tracker.tracking import locate_points
 
     late = np.intersect1d(np.asarray(meas.point_ids)[heldout], np.asarray(meas.meta["late_points"], np.int64))
     if not late.size:
-        return meas
+        return meas, heldout
     again = _with_params(m, meas_in, fitted, measurements, params_file, model_file, input_block,
                          causal_ids=late)
-    if not (np.array_equal(again.point_ids, meas.point_ids)
-            and np.array_equal(locate_points(m, again).keep, locate_points(m, meas).keep)):
+    before = np.asarray(meas.point_ids)[locate_points(m, meas).keep]
+    after = np.asarray(again.point_ids)[locate_points(m, again).keep]
+    moved = np.setxor1d(before, after)
+    if np.setdiff1d(moved, late).size:   # not expected (other points' references do not depend on these)
         log.warning("held-out tracks born after the fitted frames keep references from all their frames: from "
-                    "their first %d the points on the patch would change", LATE_REFERENCE_FRAMES)
-        return meas
-    meta["heldout_late_references"] = {"points": [int(i) for i in late], "frames": LATE_REFERENCE_FRAMES}
+                    "their first %d other tracks would move on or off the patch", LATE_REFERENCE_FRAMES)
+        return meas, heldout
+    if moved.size:
+        again = _subset_points(again, np.flatnonzero(~np.isin(again.point_ids, moved)))
+        log.warning("%d of the %d held-out tracks born after the fitted frames are left out of the run: their first "
+                    "%d frames put them off the patch where all their frames put them on it, or the reverse",
+                    moved.size, late.size, LATE_REFERENCE_FRAMES)
+    held_ids = np.setdiff1d(np.asarray(meas.point_ids)[heldout], moved)
+    heldout = np.flatnonzero(np.isin(again.point_ids, held_ids))
+    kept = np.setdiff1d(late, moved)
+    meta["heldout_late_references"] = {"points": [int(i) for i in kept], "frames": LATE_REFERENCE_FRAMES}
+    if moved.size:
+        meta["heldout_late_references"]["left_out"] = [int(i) for i in moved]
     log.info("%d held-out tracks born after the fitted frames: references from their first %d frames only",
-             late.size, LATE_REFERENCE_FRAMES)
-    return again
+             kept.size, LATE_REFERENCE_FRAMES)
+    return again, heldout
 
 
 def _prior(m, fitted, params_file):

@@ -30,7 +30,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from .estimator_names import JOINT, MODEL, NAMES  # noqa: F401  (re-exported; the names live in a light module)
-from .kalman import GaussianState, update
+from .kalman import GaussianState, update, update_blocks
 from .measurements import EstimateSet
 
 __all__ = ["NAMES", "JOINT", "Estimator", "register", "variant", "run_filter", "holdout_points", "RUNAWAY_PHI",
@@ -117,6 +117,14 @@ def _check_runaway(state: GaussianState, M: int, where: str):
                        f"|x_l| up to {np.abs(mu[M:]).max(initial=0):.3g}")
 
 
+def _use_block_update(rows, seen, n) -> bool:
+    """Whether a frame's update takes :func:`kalman.update_blocks` (O(m n^2)) rather than :func:`kalman.update`
+    (O(m^3)): when it has more measurement rows than states and every seen point is seen in all three coordinates
+    (its noise a whole 3 x 3 block)."""
+    m = 3 * seen.size
+    return m > n and bool(rows.reshape(-1, 3)[seen].all())
+
+
 def block_diag_R(cov_k: np.ndarray) -> np.ndarray:
     """Block-diagonal R (3P, 3P) of per-point covariances (P, 3, 3); unseen points get an identity block
     (their rows are dropped by the update anyway)."""
@@ -165,6 +173,20 @@ NEIGHBOURS = 8
 """Updated points whose offsets a point never updated takes the mean of (:meth:`TrackOffsets.fill`)."""
 
 
+def _innovation_precision(res):
+    """``S^{-1} e`` as (P, 3) and the diagonal 3 x 3 blocks of ``S^{-1}`` of a dense :func:`kalman.update` result."""
+    L = res.innovation_chol
+    L = np.linalg.cholesky(res.innovation_cov) if L is None else np.asarray(L)
+    m = L.shape[0]
+    ebar = sla.solve_triangular(L, np.asarray(res.innovation), lower=True, check_finite=False)
+    s_e = sla.solve_triangular(L, ebar, lower=True, trans="T", check_finite=False).reshape(-1, 3)  # S^-1 e
+    Linv, info = sla.lapack.dtrtri(np.asfortranarray(L), lower=1)                   # L^-1 (m^3 / 3 flops)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"track offsets: singular innovation factor (dtrtri info {info})")
+    A = np.ascontiguousarray(np.tril(Linv).reshape(m, -1, 3).transpose(1, 2, 0))   # (P, 3, m)
+    return s_e, A @ A.transpose(0, 2, 1)                   # diagonal 3 x 3 blocks of S^-1 = L^-T L^-1
+
+
 class TrackOffsets:
     """Per-track offsets ``b_p`` (3 per kept point), random walks beside the estimator's state (docs/estimators.md
     §3.9): what a point does that the model cannot (a track sliding on the tissue, motion finer than the mesh).
@@ -209,16 +231,11 @@ class TrackOffsets:
             pts = np.asarray(points, np.int64).reshape(-1)
         if pts.size * 3 != res.dof:
             raise ValueError("track offsets: a point must be seen in all three coordinates or none")
-        L = res.innovation_chol
-        L = np.linalg.cholesky(res.innovation_cov) if L is None else np.asarray(L)
-        m = L.shape[0]
-        ebar = sla.solve_triangular(L, np.asarray(res.innovation), lower=True, check_finite=False)
-        s_e = sla.solve_triangular(L, ebar, lower=True, trans="T", check_finite=False).reshape(-1, 3)  # S^-1 e
-        Linv, info = sla.lapack.dtrtri(np.asfortranarray(L), lower=1)                   # L^-1 (m^3 / 3 flops)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"track offsets: singular innovation factor (dtrtri info {info})")
-        A = np.ascontiguousarray(np.tril(Linv).reshape(m, -1, 3).transpose(1, 2, 0))   # (P, 3, m)
-        s_pp = A @ A.transpose(0, 2, 1)                       # diagonal 3 x 3 blocks of S^-1 = L^-T L^-1
+        if res.innovation_factor is not None:             # S factored low-rank (kalman.update_blocks)
+            s_e = res.innovation_factor.solve(res.innovation).reshape(-1, 3)
+            s_pp = res.innovation_factor.inverse_blocks()
+        else:
+            s_e, s_pp = _innovation_precision(res)
         Pb = self.cov[pts]
         b = self.mean.reshape(-1, 3)
         b[pts] += np.einsum("pij,pj->pi", Pb, s_e)
@@ -386,8 +403,15 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
                 blocks = adapt.measurement_scale(k) * blocks
             if offsets is not None:
                 blocks = blocks + offsets.cov[seen]
-            R = block_diag_R(blocks)[np.ix_(sub, sub)]
-            res = update(state, y_k[rows], Hz[rows], R, offset[rows], joseph=joseph)
+            res = None
+            if _use_block_update(rows, seen, Hz.shape[1]):   # many points: S is never formed
+                try:
+                    res = update_blocks(state, y_k[rows], Hz[rows], blocks, offset[rows])
+                except np.linalg.LinAlgError:   # a block of R not positive definite: the dense form needs only S
+                    res = None
+            if res is None:
+                R = block_diag_R(blocks)[np.ix_(sub, sub)]
+                res = update(state, y_k[rows], Hz[rows], R, offset[rows], joseph=joseph)
             state = res.state
             if offsets is not None:
                 offsets.update(res, points=seen)

@@ -255,6 +255,49 @@ def test_track_gives_held_out_late_tracks_references_from_their_first_frames(tmp
     np.testing.assert_allclose(e2.predictions, e.predictions, rtol=0, atol=1e-12)
 
 
+def test_held_out_late_tracks_whose_first_frames_lie_off_the_patch_are_left_out(tmp_path, blind_file):
+    """A held-out late track whose first two frames put it off the patch (moved 0.1 m there) cannot take a causal
+    reference: it is left out of the run (meta.heldout_late_references.left_out, absent from the estimate file)
+    instead of taking its reference from all its frames; the other held-out late tracks keep their causal
+    references, and the other points' predictions stay within 0.1 mm of the run without the change."""
+    meas = read_measurements(blind_file)
+    born = 100
+    late = np.arange(0, meas.n_points, 2)
+    pos, cov = meas.positions.copy(), meas.covariances.copy()
+    pos[:born, late], cov[:born, late] = np.nan, np.nan
+    path = str(tmp_path / "late.npz")
+    write_measurements(path, dataclasses.replace(meas, positions=pos, covariances=cov))
+    params = str(tmp_path / "p.yaml")
+    assert CliRunner().invoke(main, ["fit", path, "--model", PAPER, "-o", params, "--frames", "90"]).exit_code == 0
+
+    def run(p, out):
+        res = CliRunner().invoke(main, ["track", p, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                        "--holdout", "0.5", "--seed", "3", "--rigid-dynamics", "fit", "-o", out])
+        assert res.exit_code == 0, res.output
+        return read_estimates(out), res.output
+
+    e, _ = run(path, str(tmp_path / "e.npz"))
+    causal = e.meta["heldout_late_references"]["points"]
+    assert len(causal) >= 2 and "left_out" not in e.meta["heldout_late_references"]
+    off = causal[:len(causal) // 2]
+    moved = pos.copy()
+    cols = [int(np.flatnonzero(meas.point_ids == i)[0]) for i in off]
+    moved[born:born + 2, cols] += 0.1
+    path2 = str(tmp_path / "late2.npz")
+    write_measurements(path2, dataclasses.replace(meas, positions=moved, covariances=cov))
+    e2, output = run(path2, str(tmp_path / "e2.npz"))
+    refs = e2.meta["heldout_late_references"]
+    assert refs["left_out"] == sorted(off) and refs["points"] == sorted(set(causal) - set(off))
+    assert f"{len(off)} of the {len(causal)} held-out tracks born after the fitted frames are left out" in output
+    assert not np.isin(off, e2.point_ids).any()
+    assert sorted(e2.meta["heldout_points"]) == sorted(set(e.meta["heldout_points"]) - set(off))
+    same = np.isin(e.point_ids, e2.point_ids)
+    np.testing.assert_array_equal(e.point_ids[same], e2.point_ids)
+    # the rest of the run barely moves: the late tracks' references are fitted together (the moved frames weigh on
+    # them) and the rigid motion is centred on all the references, so by micrometres, not by the 0.1 m moved
+    assert np.nanmax(np.abs(e2.predictions - e.predictions[:, same])) < 1e-4
+
+
 def test_fit_input_options_are_checked(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "p.yaml"),
                                     "--input", "recorded"])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from heartcv.tracker.kalman import GaussianState, UpdateResult, cholesky_psd, predict, symmetrise, update
+from heartcv.tracker.kalman import GaussianState, UpdateResult, cholesky_psd, predict, symmetrise, update, update_blocks
 
 from .lg_checker import batch_posterior, check_estimator, make_problem
 
@@ -277,3 +277,64 @@ def test_perfect_measurement_counts_posterior_jitter():
     assert res.jitter_events > 0
     np.linalg.cholesky(res.state.cov)
     assert abs(res.state.mean[1] - 1.2) < 1e-12
+
+
+def _block_problem(rng, n, p, singular=False):
+    A = rng.standard_normal((n, n))
+    C = A @ A.T / n + 1e-3 * np.eye(n)
+    if singular:                                   # a state the prediction knows exactly (zero variance)
+        C[0, :] = C[:, 0] = 0.0
+    B = rng.standard_normal((p, 3, 3))
+    blocks = B @ np.swapaxes(B, 1, 2) + 0.1 * np.eye(3)
+    R = np.zeros((3 * p, 3 * p))
+    for i in range(p):
+        R[3 * i:3 * i + 3, 3 * i:3 * i + 3] = blocks[i]
+    return (GaussianState(rng.standard_normal(n), C), rng.standard_normal(3 * p), rng.standard_normal((3 * p, n)),
+            blocks, R, rng.standard_normal(3 * p))
+
+
+@pytest.mark.parametrize("n, p, singular", [(6, 1, False), (5, 40, False), (30, 4, False), (12, 30, True)])
+def test_block_update_equals_the_dense_update(n, p, singular):
+    """The low-rank (Woodbury) update with a block-diagonal R is the Cholesky-form update with the same R written
+    out: mean, covariance, innovation, NIS and log-likelihood to 1e-9 relative, with more rows than states or
+    fewer, and with a singular predicted covariance (whose zero-variance state keeps its mean exactly)."""
+    state, y, H, blocks, R, off = _block_problem(np.random.default_rng(n * 100 + p), n, p, singular)
+    a = update(state, y, H, R, off)
+    b = update_blocks(state, y, H, blocks, off)
+    scale = np.abs(a.state.cov).max()
+    np.testing.assert_allclose(b.state.mean, a.state.mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(b.state.cov, a.state.cov, rtol=0, atol=1e-10 * scale)
+    np.testing.assert_array_equal(b.innovation, a.innovation)
+    assert b.nis == pytest.approx(a.nis, rel=1e-9) and b.dof == a.dof == 3 * p
+    assert b.log_likelihood == pytest.approx(a.log_likelihood, rel=1e-9)
+    assert b.innovation_cov is None and b.innovation_chol is None
+    if singular:
+        assert b.state.mean[0] == state.mean[0] and abs(b.state.cov[0, 0]) <= 1e-12 * scale   # (the PD check's jitter)
+
+
+def test_block_innovation_solves_and_inverts_like_the_explicit_inverse():
+    """``BlockInnovation.solve`` and ``inverse_blocks`` against numpy's inverse of S = H C H^T + R formed in full;
+    ``log_det`` against slogdet."""
+    state, y, H, blocks, R, off = _block_problem(np.random.default_rng(8), 7, 9)
+    res = update_blocks(state, y, H, blocks, off)
+    S = H @ state.cov @ H.T + R
+    S_inv = np.linalg.inv(S)
+    np.testing.assert_allclose(res.innovation_factor.solve(res.innovation), S_inv @ res.innovation, rtol=1e-9)
+    inv_blocks = res.innovation_factor.inverse_blocks()
+    for i in range(9):
+        np.testing.assert_allclose(inv_blocks[i], S_inv[3 * i:3 * i + 3, 3 * i:3 * i + 3], rtol=1e-9, atol=1e-12)
+    assert res.innovation_factor.log_det == pytest.approx(np.linalg.slogdet(S)[1], rel=1e-12)
+
+
+def test_block_update_refuses_a_block_that_is_not_positive_definite():
+    """A singular block of R raises LinAlgError (the dense update, which needs only S positive definite, is the
+    fallback the filter takes); wrong shapes and non-finite entries raise ValueError."""
+    state, y, H, blocks, R, off = _block_problem(np.random.default_rng(9), 4, 3)
+    bad = blocks.copy()
+    bad[1] = 0.0
+    with pytest.raises(np.linalg.LinAlgError):
+        update_blocks(state, y, H, bad, off)
+    with pytest.raises(ValueError, match="R_blocks"):
+        update_blocks(state, y, H, blocks[:, :2], off)
+    with pytest.raises(ValueError, match="y"):
+        update_blocks(state, np.where(np.arange(9) == 2, np.nan, y), H, blocks, off)

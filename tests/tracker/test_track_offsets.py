@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from heartcv.tracker.estimators import TrackOffsets
-from heartcv.tracker.kalman import GaussianState, update
+from heartcv.tracker.kalman import GaussianState, update, update_blocks
 from heartcv.tracker.simulate import simulate, to_measurements
 from heartcv.tracker.tracking import DRIFT_GRID, first_frames, run_kalman, select_track_drift
 
@@ -72,6 +72,57 @@ def test_update_over_the_seen_rows_only_equals_the_joint_update():
     np.testing.assert_array_equal(offsets.cov[unseen], Pb0[unseen])
     with pytest.raises(ValueError, match="all three coordinates"):
         offsets.update(res, points=seen[:2])
+
+
+def test_offsets_update_from_the_block_update_equals_the_joint_update():
+    """The offsets' update from the low-rank update (``kalman.update_blocks``: S never formed, its inverse's 3 x 3
+    blocks by Woodbury) is the joint Kalman update of [x; b] (brute force), to 1e-12, as from the dense update."""
+    rng = np.random.default_rng(5)
+    n, P = 4, 9
+    x = GaussianState(rng.standard_normal(n), _spd(rng, n, 1.0))
+    H = rng.standard_normal((3 * P, n))
+    blocks = np.stack([_spd(rng, 3, 0.3) for _ in range(P)])
+    offsets = TrackOffsets(P, 0.1)
+    offsets.mean = rng.standard_normal(3 * P)
+    offsets.cov = np.stack([_spd(rng, 3, 0.5) for _ in range(P)])
+    b0, Pb0 = offsets.mean.copy(), offsets.cov.copy()
+    y, off = rng.standard_normal(3 * P), rng.standard_normal(3 * P)
+    seen = np.array([0, 2, 3, 7, 8])
+    rows = np.zeros(3 * P, bool)
+    rows[(3 * seen[:, None] + np.arange(3)).ravel()] = True
+    res = update_blocks(x, y[rows], H[rows], blocks[seen] + Pb0[seen], (off + b0)[rows])
+    assert res.innovation_factor is not None
+    offsets.update(res, points=seen)
+    _assert_joint_update(x, b0, Pb0, np.where(rows, y, np.nan), H, _block_diag(blocks), off, res, offsets)
+
+
+def test_the_filter_with_many_points_takes_the_block_update_and_agrees_with_the_dense_one(paper_model, drifting,
+                                                                                           monkeypatch):
+    """``run_filter`` takes the low-rank update when a frame has more measurement rows than states; forced either
+    way, the KF with track offsets gives the same predictions (to 1e-9 of their spread) and log-likelihood."""
+    from heartcv.tracker import estimators
+
+    _, drift = drifting
+    short = first_frames(drift, 40)
+    taken = []
+    original = estimators._use_block_update
+
+    def spy(rows, seen, n):
+        taken.append(original(rows, seen, n))
+        return force
+
+    monkeypatch.setattr(estimators, "_use_block_update", spy)
+    force = True
+    blockwise = run_kalman(paper_model, short, drift=Q)
+    force = False
+    dense = run_kalman(paper_model, short, drift=Q)
+    scale = float(np.nanstd(dense.predictions))
+    np.testing.assert_allclose(blockwise.predictions, dense.predictions, rtol=0, atol=1e-9 * scale)
+    assert blockwise.meta["log_likelihood"] == pytest.approx(dense.meta["log_likelihood"], rel=1e-9)
+    assert len(taken) == 2 * short.n_frames
+    # left to itself the filter takes the block form exactly when the frame's rows outnumber the states
+    assert all(t == (3 * short.n_points > paper_model.state_dim) for t in taken), (short.n_points,
+                                                                                   paper_model.state_dim)
 
 
 def _assert_joint_update(x, b0, Pb0, y, H, R, off, res, offsets):
