@@ -349,6 +349,14 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
     from heartcv.tracker.files import InputError
 
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
+
+    def region(first):
+        """The automatic region of interest (the moving tissue of the first frames), logged."""
+        out = auto_region(first, opts)
+        log.info("automatic region of interest: %d px (%.0f %% of camera %s); --mask to choose it",
+                 out.sum(), 100 * out.mean(), rig.cameras[opts.ref_camera].name)
+        return out
+
     try:
         if dense:
             from heartcv.dense import StereoPair, dense_sequence
@@ -357,6 +365,8 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 StereoPair.from_cameras(rig.cameras, opts.ref_camera)
             except ValueError as exc:
                 raise InputError(rig_file, f"--dense: {exc}", "cameras") from None
+            if roi is None:   # as the sparse mode: no points on instruments, highlights or a static background
+                roi = region(reference_frames(reader.read, count, opts.ref_camera))
             with progress(reader, "measuring (dense)", count, verbosity) as frames:
                 run = dense_sequence(frames, rig.cameras, opts, roi=roi)
         else:
@@ -365,9 +375,7 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
             auto = sizing.get("size_factor") is None
             first = reference_frames(reader.read, count, opts.ref_camera) if roi is None or auto else None
             if roi is None:
-                roi = auto_region(first, opts)
-                log.info("automatic region of interest: %d px (%.0f %% of camera %s); --mask to choose it",
-                         roi.sum(), 100 * roi.mean(), ref_cam.name)
+                roi = region(first)
             if auto:
                 if not first:
                     raise InputError(None, "none of the reference camera's first frames can be read (needed by "

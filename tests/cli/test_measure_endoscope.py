@@ -140,6 +140,33 @@ def test_dense_and_overlay(pair, tmp_path):
     assert res.exit_code == 2 and (tmp_path / "mine" / "notes.txt").read_text() == "keep"
 
 
+def test_dense_takes_the_automatic_region_of_interest(pair, tmp_path):
+    """Without --mask the dense mode is given the sparse mode's automatic region of interest (the moving tissue of
+    the first frames, §10.1; here a dark band is left out of it): the same region in both summaries,
+    and no dense point born on the band."""
+    import cv2
+
+    seq = tmp_path / "seq"
+    for cam in ("cam0", "cam1"):
+        (seq / cam).mkdir(parents=True)
+        for f in sorted((pair / "seq" / cam).iterdir()):
+            img = cv2.imread(str(f))
+            img[:, 40:110] = 0                                # a dark band (outside the lit field)
+            cv2.imwrite(str(seq / cam / f.name), img)
+    sparse, _ = _measure(pair, tmp_path / "s", seq=seq)
+    dense, out = _measure(pair, tmp_path / "d", "--dense", "--csv", tmp_path / "d.csv", seq=seq)
+    assert sparse.exit_code == 0 and dense.exit_code == 0, (sparse.output, dense.output)
+    roi_sparse, roi_dense = json.loads(sparse.stdout)["roi_px"], json.loads(dense.stdout)["roi_px"]
+    assert roi_dense == roi_sparse < W * H - 60 * H, (roi_dense, roi_sparse)
+    from heartcv.tracker.io import read_measurements
+
+    m = read_measurements(out)
+    # the reference camera's column of every point at frame 0 (rectified pair, no distortion: X / Z * f + cx)
+    X = m.positions[0][m.seen[0]]
+    u = X[:, 0] / X[:, 2] * 390 + (W - 1) / 2
+    assert len(u) > 1000 and not ((u > 40) & (u < 110)).any()
+
+
 # -- the real in-vivo heart (slow) ------------------------------------------------------------------------------------
 invivo = pytest.mark.skipif(not INVIVO.is_dir(), reason="shared data not available (hamlyn_invivo_heart)")
 
