@@ -219,12 +219,9 @@ def test_fit_exits_1_when_the_observed_patch_holds_too_few_points(tmp_path, monk
     assert not out.exists()
 
 
-def test_track_gives_held_out_late_tracks_references_from_their_first_frames(tmp_path, blind_file):
-    """Tracks born after the fitted frames that --holdout keeps out get references from their first two frames
-    (meta.heldout_late_references lists exactly the held-out ones among the late); their later measurements then
-    do not change the run (moved by 1 mm after frame born + 2: the same predictions of every point; with references
-    from all their frames they moved). The parameters file's rigid dynamics in both runs: a file other than the
-    fitted one is never relearned from."""
+def _late_tracks(tmp_path, blind_file):
+    """The blind file with every second track born at frame 100 (unseen before), written, and fitted on frames 0-89:
+    (meas, born, late columns, positions, covariances, path, parameters path)."""
     meas = read_measurements(blind_file)
     born = 100
     late = np.arange(0, meas.n_points, 2)
@@ -234,14 +231,25 @@ def test_track_gives_held_out_late_tracks_references_from_their_first_frames(tmp
     write_measurements(path, dataclasses.replace(meas, positions=pos, covariances=cov))
     params = str(tmp_path / "p.yaml")
     assert CliRunner().invoke(main, ["fit", path, "--model", PAPER, "-o", params, "--frames", "90"]).exit_code == 0
+    return meas, born, late, pos, cov, path, params
 
-    def run(p, out):
-        res = CliRunner().invoke(main, ["track", p, "--model", PAPER, "--params", params, "--estimator", "kf",
-                                        "--holdout", "0.5", "--seed", "3", "--rigid-dynamics", "fit", "-o", out])
-        assert res.exit_code == 0, res.output
-        return read_estimates(out)
 
-    e = run(path, str(tmp_path / "e.npz"))
+def _track_held_out(path, out, params):
+    """The KF with half the tracks held out (seed 3) and the parameters file's rigid dynamics: (estimates, output)."""
+    res = CliRunner().invoke(main, ["track", path, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "--holdout", "0.5", "--seed", "3", "--rigid-dynamics", "fit", "-o", out])
+    assert res.exit_code == 0, res.output
+    return read_estimates(out), res.output
+
+
+def test_track_gives_held_out_late_tracks_references_from_their_first_frames(tmp_path, blind_file):
+    """Tracks born after the fitted frames that --holdout keeps out get references from their first two frames
+    (meta.heldout_late_references lists exactly the held-out ones among the late); their later measurements then
+    do not change the run (moved by 1 mm after frame born + 2: the same predictions of every point; with references
+    from all their frames they moved). The parameters file's rigid dynamics in both runs: a file other than the
+    fitted one is never relearned from."""
+    meas, born, late, pos, cov, path, params = _late_tracks(tmp_path, blind_file)
+    e, _ = _track_held_out(path, str(tmp_path / "e.npz"), params)
     held = set(e.meta["heldout_points"])
     late_ids = {int(meas.point_ids[i]) for i in late}
     expected = sorted(held & late_ids)
@@ -251,7 +259,7 @@ def test_track_gives_held_out_late_tracks_references_from_their_first_frames(tmp
     moved[born + 2:, held_late] += 1e-3          # their later measurements: in no update and no reference now
     path2 = str(tmp_path / "late2.npz")
     write_measurements(path2, dataclasses.replace(meas, positions=moved, covariances=cov))
-    e2 = run(path2, str(tmp_path / "e2.npz"))
+    e2, _ = _track_held_out(path2, str(tmp_path / "e2.npz"), params)
     np.testing.assert_allclose(e2.predictions, e.predictions, rtol=0, atol=1e-12)
 
 
@@ -260,23 +268,8 @@ def test_held_out_late_tracks_whose_first_frames_lie_off_the_patch_are_left_out(
     reference: it is left out of the run (meta.heldout_late_references.left_out, absent from the estimate file)
     instead of taking its reference from all its frames; the other held-out late tracks keep their causal
     references, and the other points' predictions stay within 0.1 mm of the run without the change."""
-    meas = read_measurements(blind_file)
-    born = 100
-    late = np.arange(0, meas.n_points, 2)
-    pos, cov = meas.positions.copy(), meas.covariances.copy()
-    pos[:born, late], cov[:born, late] = np.nan, np.nan
-    path = str(tmp_path / "late.npz")
-    write_measurements(path, dataclasses.replace(meas, positions=pos, covariances=cov))
-    params = str(tmp_path / "p.yaml")
-    assert CliRunner().invoke(main, ["fit", path, "--model", PAPER, "-o", params, "--frames", "90"]).exit_code == 0
-
-    def run(p, out):
-        res = CliRunner().invoke(main, ["track", p, "--model", PAPER, "--params", params, "--estimator", "kf",
-                                        "--holdout", "0.5", "--seed", "3", "--rigid-dynamics", "fit", "-o", out])
-        assert res.exit_code == 0, res.output
-        return read_estimates(out), res.output
-
-    e, _ = run(path, str(tmp_path / "e.npz"))
+    meas, born, late, pos, cov, path, params = _late_tracks(tmp_path, blind_file)
+    e, _ = _track_held_out(path, str(tmp_path / "e.npz"), params)
     causal = e.meta["heldout_late_references"]["points"]
     assert len(causal) >= 2 and "left_out" not in e.meta["heldout_late_references"]
     off = causal[:len(causal) // 2]
@@ -285,7 +278,7 @@ def test_held_out_late_tracks_whose_first_frames_lie_off_the_patch_are_left_out(
     moved[born:born + 2, cols] += 0.1
     path2 = str(tmp_path / "late2.npz")
     write_measurements(path2, dataclasses.replace(meas, positions=moved, covariances=cov))
-    e2, output = run(path2, str(tmp_path / "e2.npz"))
+    e2, output = _track_held_out(path2, str(tmp_path / "e2.npz"), params)
     refs = e2.meta["heldout_late_references"]
     assert refs["left_out"] == sorted(off) and refs["points"] == sorted(set(causal) - set(off))
     assert f"{len(off)} of the {len(causal)} held-out tracks born after the fitted frames are left out" in output

@@ -45,19 +45,25 @@ def test_decoupled_update_equals_the_joint_update_of_one_frame():
         TrackOffsets(3, 0.0)
 
 
-def test_update_over_the_seen_rows_only_equals_the_joint_update():
-    """``run_filter`` hands the update only the rows of the points seen (never the 3P x 3P covariance of all the
-    kept points): with ``points=`` the offsets' update is the joint Kalman update of [x; b] over all the points
-    (brute force, NaN rows dropped), to 1e-12; unseen points keep their offsets; a point seen in two of its
-    coordinates is refused."""
-    rng = np.random.default_rng(4)
-    n, P = 5, 7
+def _random_frame(rng, n, P):
+    """A state of n, the rows of P points, their 3 x 3 noise blocks and offsets with random means and covariances."""
     x = GaussianState(rng.standard_normal(n), _spd(rng, n, 1.0))
     H = rng.standard_normal((3 * P, n))
     blocks = np.stack([_spd(rng, 3, 0.3) for _ in range(P)])
     offsets = TrackOffsets(P, 0.1)
     offsets.mean = rng.standard_normal(3 * P)
     offsets.cov = np.stack([_spd(rng, 3, 0.5) for _ in range(P)])
+    return x, H, blocks, offsets
+
+
+def test_update_over_the_seen_rows_only_equals_the_joint_update():
+    """``run_filter`` hands the update only the rows of the points seen (never the 3P x 3P covariance of all the
+    kept points): with ``points=`` the offsets' update is the joint Kalman update of [x; b] over all the points
+    (brute force, NaN rows dropped), to 1e-12; unseen points keep their offsets; a point seen in two of its
+    coordinates is refused."""
+    rng = np.random.default_rng(4)
+    P = 7
+    x, H, blocks, offsets = _random_frame(rng, 5, P)
     b0, Pb0 = offsets.mean.copy(), offsets.cov.copy()
     y = rng.standard_normal(3 * P)
     off = rng.standard_normal(3 * P)
@@ -78,13 +84,8 @@ def test_offsets_update_from_the_block_update_equals_the_joint_update():
     """The offsets' update from the low-rank update (``kalman.update_blocks``: S never formed, its inverse's 3 x 3
     blocks by Woodbury) is the joint Kalman update of [x; b] (brute force), to 1e-12, as from the dense update."""
     rng = np.random.default_rng(5)
-    n, P = 4, 9
-    x = GaussianState(rng.standard_normal(n), _spd(rng, n, 1.0))
-    H = rng.standard_normal((3 * P, n))
-    blocks = np.stack([_spd(rng, 3, 0.3) for _ in range(P)])
-    offsets = TrackOffsets(P, 0.1)
-    offsets.mean = rng.standard_normal(3 * P)
-    offsets.cov = np.stack([_spd(rng, 3, 0.5) for _ in range(P)])
+    P = 9
+    x, H, blocks, offsets = _random_frame(rng, 4, P)
     b0, Pb0 = offsets.mean.copy(), offsets.cov.copy()
     y, off = rng.standard_normal(3 * P), rng.standard_normal(3 * P)
     seen = np.array([0, 2, 3, 7, 8])
