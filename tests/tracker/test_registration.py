@@ -1,6 +1,5 @@
 """Registration of rig-frame points onto the patch model (tracker.registration)."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +21,6 @@ from heartcv.tracker.tracking import locate_points, run_kalman
 
 SIGMA = 1e-4  # m, the paper model's measurement noise
 HALF_TURN = np.diag([-1.0, 1.0, -1.0, 1.0])
-PHANTOM = Path("/tmp/hw")
 
 
 def pose(rotvec, t):
@@ -372,35 +370,3 @@ def test_the_dominant_deformation_stands_in_for_an_unrecorded_input(paper_model,
                                                                  meas.positions, np.nan),
                             meas.covariances, meas.reference, np.zeros((meas.n_frames, 0)), (), (), "rig")
     assert np.all(deformation_signal(sparse) == 0)
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not (PHANTOM / "meas.npz").exists() or not (PHANTOM / "seq" / "truth.npz").exists(),
-                    reason="phantom measurement /tmp/hw not present")
-def test_phantom_measurement_against_the_render_truth():
-    """`heartcv measure` output of the rendered phantom (calibrated rig ~ camera 0, which differs from the
-    truth's camera 0 by ~0.015 deg / 0.1 mm): the automatic registration against world_from_patch."""
-    from heartcv.io import read_render_truth
-    from heartcv.tracker.io import read_measurements, read_model
-    from heartcv.tracker.model import build_model
-
-    root = Path(__file__).resolve().parents[2]
-    meas = read_measurements(PHANTOM / "meas.npz")
-    truth, _ = read_render_truth(PHANTOM / "seq" / "truth.npz")
-    model = build_model(read_model(root / "sample_sequences" / "phantom" / "model.yaml"))
-    reg = register(meas, model)
-    T_true = np.linalg.inv(truth["world_from_patch"])
-    rot, origin = errors(reg.patch_from_rig, T_true)
-    print(f"phantom: rotation {np.degrees(rot):.3f} deg, origin {np.linalg.norm(origin) * 1e3:.3f} mm "
-          f"(patch frame {np.round(origin * 1e3, 3)}), rms {reg.rms_m * 1e3:.3f} mm, "
-          f"{reg.on_patch.sum()} on the patch, {reg.n_points} fitted")
-    assert reg.converged, reg.message
-    assert np.degrees(rot) < 0.5 and np.linalg.norm(origin) < 0.5e-3
-    assert reg.rms_m < 0.1e-3
-    g = model.mesh.geometry
-    std = g.from_patch(apply(T_true, meas.reference))
-    on_true = (np.abs(std[:, 0]) <= g.length / 2) & (np.abs(std[:, 1]) <= g.width / 2) \
-        & (np.abs(std[:, 2]) <= g.thickness / 4)
-    assert (reg.on_patch != on_true).sum() <= 5
-    est = run_kalman(model, to_patch_frame(meas, reg))
-    assert est.complete and est.prediction_rmse() < 0.15e-3
