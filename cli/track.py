@@ -496,29 +496,23 @@ def _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, 
     ``meta['heldout_late_references']`` (``left_out``: those left out)."""
     import numpy as np
 
-    from heartcv.tracker.fit import LATE_REFERENCE_FRAMES, _subset_points
-    from heartcv.tracker.tracking import locate_points
+    from heartcv.tracker.fit import LATE_REFERENCE_FRAMES, causal_heldout_selection
 
     late = np.intersect1d(np.asarray(meas.point_ids)[heldout], np.asarray(meas.meta["late_points"], np.int64))
     if not late.size:
         return meas, heldout
     again = _with_params(m, meas_in, fitted, measurements, params_file, model_file, input_block,
                          causal_ids=late)
-    before = np.asarray(meas.point_ids)[locate_points(m, meas).keep]
-    after = np.asarray(again.point_ids)[locate_points(m, again).keep]
-    moved = np.setxor1d(before, after)
-    if np.setdiff1d(moved, late).size:   # not expected (other points' references do not depend on these)
+    chosen = causal_heldout_selection(m, meas, again, heldout, late)
+    if chosen is None:
         log.warning("held-out tracks born after the fitted frames keep references from all their frames: from "
                     "their first %d other tracks would move on or off the patch", LATE_REFERENCE_FRAMES)
         return meas, heldout
+    again, heldout, kept, moved = chosen
     if moved.size:
-        again = _subset_points(again, np.flatnonzero(~np.isin(again.point_ids, moved)))
         log.warning("%d of the %d held-out tracks born after the fitted frames are left out of the run: their first "
                     "%d frames put them off the patch where all their frames put them on it, or the reverse",
                     moved.size, late.size, LATE_REFERENCE_FRAMES)
-    held_ids = np.setdiff1d(np.asarray(meas.point_ids)[heldout], moved)
-    heldout = np.flatnonzero(np.isin(again.point_ids, held_ids))
-    kept = np.setdiff1d(late, moved)
     meta["heldout_late_references"] = {"points": [int(i) for i in kept], "frames": LATE_REFERENCE_FRAMES}
     if moved.size:
         meta["heldout_late_references"]["left_out"] = [int(i) for i in moved]

@@ -39,7 +39,7 @@ from .params import NAMES, ParameterSpace
 from .tracking import ObservedPoints, frame_interval, locate_points
 
 __all__ = ["FitProblem", "UnknownInputProblem", "FitResult", "fit", "tracking_prior", "undeformed_references",
-           "S_LIMIT", "SINGULAR_RTOL"]
+           "causal_heldout_selection", "S_LIMIT", "SINGULAR_RTOL"]
 
 log = logging.getLogger(__name__)
 
@@ -865,3 +865,24 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
         meas, point_ids=meas.point_ids[keep], positions=meas.positions[:, keep],
         covariances=meas.covariances[:, keep], reference=offsets, views=meas.views[:, keep],
         reprojection_rms=meas.reprojection_rms[:, keep], meta=meta)
+
+
+def causal_heldout_selection(model: PatchModel, meas: MeasurementSet, causal: MeasurementSet, heldout, late):
+    """Combine a run's points (``meas``, references from all frames) with the same points whose held-out late tracks
+    ``late`` (ids) took causal references (``causal``, :func:`undeformed_references` with ``causal_ids=late``).
+
+    A late track whose causal reference puts it off the patch where all its frames put it on (or the reverse) has no
+    causal reference to be predicted from: it is left out. Returns ``(meas, heldout, kept, left_out)`` (the causal
+    set without those tracks, the held-out indices into it, the late ids kept and those left out), or None when
+    tracks other than ``late`` would move on or off the patch (the references do not depend on them, so it is not
+    expected; the caller then keeps ``meas``)."""
+    late = np.asarray(late, np.int64)
+    before = np.asarray(meas.point_ids)[locate_points(model, meas).keep]
+    after = np.asarray(causal.point_ids)[locate_points(model, causal).keep]
+    moved = np.setxor1d(before, after)
+    if np.setdiff1d(moved, late).size:
+        return None
+    if moved.size:
+        causal = _subset_points(causal, np.flatnonzero(~np.isin(causal.point_ids, moved)))
+    held_ids = np.setdiff1d(np.asarray(meas.point_ids)[heldout], moved)
+    return causal, np.flatnonzero(np.isin(causal.point_ids, held_ids)), np.setdiff1d(late, moved), moved

@@ -82,6 +82,13 @@ class GaussianState:
         object.__setattr__(self, "cov", cov)
 
 
+def _whiten(L_R, v) -> np.ndarray:
+    """L_R^{-1} v block by block (L_R of shape (p, b, b)) for v of shape (p b,) or (p b, k)."""
+    p, b = L_R.shape[:2]
+    v = np.asarray(v, float)
+    return np.linalg.solve(L_R, v.reshape(p, b, -1)).reshape(v.shape)
+
+
 class BlockInnovation:
     """The innovation covariance ``S = R + H C H^T`` of :func:`update_blocks`, held factored: ``R = L_R L_R^T`` block
     by block (p blocks of b x b), ``F = L_R^{-1} H L_C`` (m x r, ``C = L_C L_C^T``) and ``I + F^T F = L_A L_A^T``.
@@ -107,10 +114,7 @@ class BlockInnovation:
 
     def whiten(self, v) -> np.ndarray:
         """L_R^{-1} v for v of shape (m,) or (m, k)."""
-        p, b = self.blocks
-        v = np.asarray(v, float)
-        w = np.linalg.solve(self.L_R, v.reshape(p, b, -1))
-        return w.reshape(v.shape)
+        return _whiten(self.L_R, v)
 
     def solve(self, v) -> np.ndarray:
         """S^{-1} v for v of shape (m,)."""
@@ -411,8 +415,7 @@ def update_blocks(prediction: GaussianState, y, H, R_blocks, offset=None) -> Upd
     L_R = np.linalg.cholesky(R_blocks)                       # batched; LinAlgError if a block is not PD
     mu, C = prediction.mean, prediction.cov
     L_C = _psd_factor(C)
-    factor = BlockInnovation(L_R, np.empty((m, 0)), np.empty((0, 0)))
-    F = factor.whiten(H) @ L_C
+    F = _whiten(L_R, H) @ L_C
     L_A = np.linalg.cholesky(np.eye(n) + F.T @ F)
     factor = BlockInnovation(L_R, F, L_A)
     e = y - offset - H @ mu
