@@ -55,7 +55,8 @@ phantom-blind: $(STAMP)
 # recording of rectified stereo pairs with `make demo-invivo INVIVO=DIR` (see sample_sequences/Makefile for its
 # geometry and frame rate variables)
 demo-invivo: $(STAMP)
-	$(MAKE) -C sample_sequences demo-invivo PY=$(abspath $(PY)) $(if $(INVIVO),INVIVO=$(abspath $(INVIVO)))
+	$(MAKE) -C sample_sequences demo-invivo PY=$(abspath $(PY)) $(if $(INVIVO),INVIVO=$(abspath $(INVIVO))) \
+		$(if $(WORK),WORK=$(abspath $(WORK)))
 
 bench: $(STAMP)
 	$(PY) -m benchmarks all
@@ -82,9 +83,9 @@ clean-venv:
 
 # the real in-vivo beating heart (../shared/data/hamlyn_invivo_heart, 300 rectified 360x288 stereo pairs, no
 # calibration): rig from the rectified geometry, the sparse and dense measurement with an overlay, and the
-# acceptance tests of issue 14
+# acceptance tests of issue 14 (sample_sequences/work/measure_real; demo-invivo keeps its own folder)
 IV := ../shared/data/hamlyn_invivo_heart
-IV_OUT := sample_sequences/work/invivo
+IV_OUT := sample_sequences/work/measure_real
 measure-real: $(STAMP)
 	mkdir -p $(IV_OUT)
 	$(PY) -m heartcv.cli.main rig rectified --image-size 360x288 --focal-px 390 --baseline-m 0.0055 -o $(IV_OUT)/rig.yaml
