@@ -1,4 +1,4 @@
-"""``make demo-invivo`` re-runs what a change of recording or setting affects, and nothing else.
+"""``make demo`` and ``make demo-invivo`` re-run what a change of recording or setting affects, and nothing else.
 
 The Makefile's recipes run ``$(PY) -m heartcv.cli.main STAGE ...``; here PY is a stub that logs each stage and
 writes the files the recipe expects, so the test checks make's decisions in a second, without running heartcv."""
@@ -42,7 +42,7 @@ AFTER_MEASURE = ALL[2:]
 
 
 @pytest.fixture
-def make_invivo(tmp_path):
+def make_stub(tmp_path):
     if shutil.which("make") is None:
         pytest.fail("GNU make is needed to build and test heartcv (the README's commands)")
     stub = tmp_path / "python"
@@ -52,9 +52,9 @@ def make_invivo(tmp_path):
     for name in ("heart_a", "heart_b"):
         (tmp_path / name / "cam0").mkdir(parents=True)
 
-    def run(*settings):
+    def run(*settings, goal="demo-invivo"):
         log.write_text("")
-        res = subprocess.run(["make", "-C", str(ROOT / "sample_sequences"), "demo-invivo", f"PY={stub}",
+        res = subprocess.run(["make", "-C", str(ROOT / "sample_sequences"), goal, f"PY={stub}",
                               f"WORK={tmp_path / 'work'}", *settings],
                              capture_output=True, text=True, env={"STUB_LOG": str(log), "PATH": "/usr/bin:/bin"})
         assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
@@ -73,8 +73,8 @@ def _arg(calls, stage, flag):
     return call[call.index(flag) + 1]
 
 
-def test_demo_invivo_reruns_what_a_changed_setting_affects(make_invivo):
-    run, tmp = make_invivo
+def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
+    run, tmp = make_stub
     heart_a, heart_b = str(tmp / "heart_a"), str(tmp / "heart_b")
     calls = run(f"INVIVO={heart_a}")
     assert _stages(calls) == sorted(ALL), calls
@@ -93,3 +93,18 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_invivo):
     assert _stages(calls) == sorted(ALL), calls
     assert _arg(calls, "rig", "--focal-px") == "400"
     assert run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400") == []
+
+
+def test_demo_reruns_what_a_changed_setting_affects(make_stub):
+    run, _ = make_stub
+    first = run(goal="demo")
+    assert _stages(first) == sorted(["target", "render", "render", "calibrate", "measure", "fit", "track", "track",
+                                     "report"]), first
+    assert run(goal="demo") == []
+    calls = run("SEED=2", goal="demo")                               # the fit's seed: the fit and what follows
+    assert _stages(calls) == ["fit", "report", "track", "track"], calls
+    assert _arg(calls, "fit", "--seed") == "2"
+    calls = run("SEED=2", "FRAMES=120", goal="demo")                # the sequence's length: not the calibration
+    assert _stages(calls) == ["fit", "measure", "render", "report", "track", "track"], calls
+    assert _arg(calls, "render", "--frames") == "120"
+    assert run("SEED=2", "FRAMES=120", goal="demo") == []
