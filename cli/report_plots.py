@@ -122,14 +122,33 @@ def prediction_error_figure(series: dict, colors: dict, noise_norm: float | None
             ax.axvline(fit_end, **_FIT_END_STYLE)
         handles.append(Line2D([], [], **_FIT_END_STYLE, label="end of the fitted frames (heartcv fit)"))
     top.set_ylabel(r"mean $|y - \hat{y}|$ [mm]")
+    # the variance on a log scale: one estimator's outlier frames (a baseline's, tens of mm²) would otherwise flatten
+    # every other curve onto the axis
     bottom.set_ylabel(r"variance of $|y - \hat{y}|$ [mm²]")
+    bottom.set_yscale("log")
     for ax in (top, bottom):
         _style(ax)
-        ax.set_ylim(bottom=0)
+    top.set_ylim(bottom=0)
     bottom.set_xlabel("time [s]")
     _xlim(bottom, [s[0] for s in series.values()])
     _legend(fig, handles, ncol=2)
     return fig
+
+
+def _identical_series(series: dict) -> list:
+    """``series`` (label -> (times, mean, std)) as [(labels, (times, mean, std))]: runs whose curves are equal (e.g.
+    several runs at the same fitted constant) drawn once under all their labels, not hidden under one another."""
+    groups = []
+    for label, curve in series.items():
+        t, m, s = (np.asarray(a, float) for a in curve)
+        for labels, (t0, m0, s0) in groups:
+            if t.shape == t0.shape and m.shape == m0.shape and s.shape == s0.shape and np.array_equal(t, t0) \
+                    and np.array_equal(m, m0, equal_nan=True) and np.array_equal(s, s0, equal_nan=True):
+                labels.append(label)
+                break
+        else:
+            groups.append(([label], (t, m, s)))
+    return groups
 
 
 def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=None, phases=None):
@@ -153,13 +172,13 @@ def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=Non
     scale, pu = si_scale(np.concatenate(values) if values else [], unit)
     fig, (ax,) = _figure()
     handles = []
-    for i, (label, (t, mean, std)) in enumerate(series.items()):
-        c = colors[label]
+    for i, (labels, (t, mean, std)) in enumerate(_identical_series(series)):
+        c = colors[labels[0]]
         m, s = np.asarray(mean) * scale, np.asarray(std) * scale
         if np.nanmax(s, initial=0.0) > 0:
             ax.fill_between(t, m - 2 * s, m + 2 * s, color=c, alpha=0.18, lw=0)
         ax.plot(t, m, color=c, lw=1.8, zorder=_z(i))
-        handles.append(Line2D([], [], color=c, lw=1.8, label=series_name(label)))
+        handles.append(Line2D([], [], color=c, lw=1.8, label=", ".join(series_name(lb) for lb in labels)))
     if any(np.nanmax(np.asarray(s), initial=0.0) > 0 for _, _, s in series.values()):
         handles.append(Patch(color="0.6", alpha=0.35, label="±2σ"))
     if truth is not None:
@@ -323,8 +342,8 @@ def step_time_figure(series: dict, colors: dict):
 
 # -- the report's figure set ------------------------------------------------------------------------
 CAPTIONS = {
-    "prediction_error.png": "One-step prediction error |y − ŷ| per frame: mean (top) and variance (bottom) over "
-                            "the points seen, per estimator; dashed: the mean over frames k ≥ 1.",
+    "prediction_error.png": "One-step prediction error |y − ŷ| per frame: mean (top) and variance (bottom, log "
+                            "scale) over the points seen, per estimator; dashed: the mean over frames k ≥ 1.",
     "nis.png": "Normalised innovation squared per degree of freedom with the 95 % χ² band of each frame (light) and "
                "of the time average (dark); dashed: each estimator's time average.",
     "truth_error.png": "Error against the true point positions of the filtered estimates (top, after each frame's "
