@@ -48,6 +48,24 @@ def _track_offsets(ctx, param, value):
     return q
 
 
+def _overdispersion(ctx, param, value):
+    """None (not given: 'auto'), 'auto', or a finite factor in [1, 1e6]."""
+    import math
+
+    if value is None:
+        return None
+    v = str(value).strip().lower()
+    if v == "auto":
+        return v
+    try:
+        q = float(v)
+    except ValueError:
+        raise click.BadParameter(f"'auto' or a factor >= 1 expected, got {value!r}") from None
+    if not (math.isfinite(q) and 1.0 <= q <= 1e6):
+        raise click.BadParameter(f"a factor in [1, 1e6] expected (1: the plain update), got {value!r}")
+    return q
+
+
 def _odd_nodes(ctx, param, value):
     if value is not None and value % 2 == 0:
         raise click.BadParameter(f"D must be an odd integer >= 3 (shared centre node), got {value}")
@@ -109,6 +127,11 @@ def _odd_nodes(ctx, param, value):
               help="ge sampling the heart rate: the random walk of its log per square-root second (default 0.02, a "
                    "resting heart's beat-to-beat variability; 0: an unknown constant rate, a paced or steady heart; "
                    "docs/model.md 17).")
+@click.option("--parameter-overdispersion", "overdispersion", default=None, callback=_overdispersion,
+              help="ge/ukf/ekf: temper the parameters' update by the over-dispersion of their shifts, for errors "
+                   "that neighbouring points share (docs/estimators.md 3.11). 'auto' (the default) estimates it from "
+                   "the frames so far and leaves the update plain until it is beyond doubt; a factor >= 1 fixes it "
+                   "(1: the plain update).")
 @click.option("--rigid-dynamics", type=click.Choice(("refit", "fit")), default="refit", show_default=True,
               help="kf/ge/ukf/ekf with an estimated input: 'refit' learns the rigid motion's increment "
                    "autoregression again from the KF's filtered rigid motion over the fitted frames (when the "
@@ -118,7 +141,7 @@ def _odd_nodes(ctx, param, value):
 @click.pass_context
 def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, params_file, references, adapt,
           adapt_random_walk, adapt_window, holdout, seed, heart_rate_hz, track_offsets, without_input,
-          sample_heart_rate, heart_rate_walk, rigid_dynamics, output, as_json):
+          sample_heart_rate, heart_rate_walk, overdispersion, rigid_dynamics, output, as_json):
     """Estimate the surface state (and, for ge/ukf/ekf, the parameters) from MEASUREMENTS and record the
     one-step predictions of every point.
 
@@ -140,6 +163,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise BadInput("--without-input applies to the model-based estimators (kf, ge, ukf, ekf) only")
     if without_input and params_file is None:
         raise BadInput("--without-input needs --params: the parameters file of a fit with an estimated input")
+    if overdispersion is not None and estimator not in ("ge", "ukf", "ekf"):
+        raise BadInput("--parameter-overdispersion applies to the estimators of parameters (ge, ukf, ekf) only")
     if heart_rate_walk is not None and (estimator != "ge" or not sample_heart_rate):
         raise BadInput("--heart-rate-walk applies to ge sampling the heart rate only (not with --hold-heart-rate)")
     part = partial_path(output)
@@ -211,7 +236,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
             input_block = _rigid_dynamics(rigid_dynamics, m, meas, fitted, full_block, references, adaptation,
                                           heldout, full_drift, meta).without_input()
         est = _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references,
-                   adaptation, heldout, input_block, drift, sample_heart_rate, heart_rate_walk)
+                   adaptation, heldout, input_block, drift, sample_heart_rate, heart_rate_walk,
+                   "auto" if overdispersion is None else overdispersion)
     except InputError as exc:  # the measurement file does not fit the model (validated by the core)
         raise exc.in_file(measurements) from None
     except np.linalg.LinAlgError as exc:
@@ -220,6 +246,11 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise StageFailed(_diverged(exc, estimator, meas, meta, part, output, measurements)) from None
     if est.meta.get("dropped_points"):
         log.warning("%d points lie off the patch and were ignored", len(est.meta["dropped_points"]))
+    od = est.meta.get("parameter_overdispersion") or {}
+    if od.get("frames_adjusted"):
+        log.info("%s: the parameters' shifts spread %.2f x their predicted variance (NIS per degree of freedom over "
+                 "%d); their update tempered by %.2f in %d of %d frames (docs/estimators.md 3.11)", estimator,
+                 od["nis_per_dof"], od["dof"], od["kappa_final"], od["frames_adjusted"], est.completed_steps)
     for name in ("heart_rate", "respiration_rate"):   # the GE's sampled rates: their final posteriors
         trace = getattr(est, name)
         if trace is not None and est.completed_steps:
@@ -540,7 +571,8 @@ def _adaptation(adapt, random_walk, window):
 
 
 def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosity, references, adaptation,
-         heldout=None, input_block=None, drift=None, sample_heart_rate=True, heart_rate_walk=None):
+         heldout=None, input_block=None, drift=None, sample_heart_rate=True, heart_rate_walk=None,
+         overdispersion="auto"):
     from threadpoolctl import threadpool_limits
 
     from heartcv.tracker.joint import run_joint
@@ -556,7 +588,8 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
         return run_joint(m, meas, estimator, theta0=theta0, prior_std=prior_std, options=options, progress=tick,
                          references=references, adaptation=adaptation, heldout=heldout, input_block=input_block,
                          drift=drift, rate=(_rate_prior(estimator, input_block, fitted, heart_rate_walk)
-                                            if sample_heart_rate else None))
+                                            if sample_heart_rate else None),
+                         parameter_overdispersion=overdispersion)
 
 
 def _diverged(exc, estimator, meas, meta, part, output, measurements) -> str:
@@ -598,6 +631,7 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
         "estimated": list(est.meta.get("estimated", [])),
         "references": est.meta.get("references", "fixed"),
         "adaptation": est.meta.get("adaptation"),
+        "parameter_overdispersion": est.meta.get("parameter_overdispersion"),
         "heart_rate_hz": dict(est.meta, **(meta or {})).get("heart_rate_hz"),
         "respiration_rate_hz": dict(est.meta, **(meta or {})).get("respiration_rate_hz"),
         "track_offsets_std_per_frame_m": (dict(est.meta, **(meta or {})).get("track_offsets") or {}).get(

@@ -32,6 +32,7 @@ import scipy.linalg as sla
 from .estimator_names import JOINT, MODEL, NAMES  # noqa: F401  (re-exported; the names live in a light module)
 from .kalman import GaussianState, update, update_blocks
 from .measurements import EstimateSet
+from .overdispersion import adjusted, tempered_marginal
 
 __all__ = ["NAMES", "JOINT", "Estimator", "register", "variant", "run_filter", "holdout_points", "RUNAWAY_PHI",
            "RUNAWAY_STATE"]
@@ -282,7 +283,7 @@ class TrackOffsets:
 def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u, trans, Q_n, *,
                joseph: bool = False, adapt=None, progress: Callable[[int, int], None] | None = None,
                meta: dict | None = None, heldout=None, drift: float | None = None,
-               translation=None) -> EstimateSet:
+               translation=None, overdispersion=None) -> EstimateSet:
     """The frame loop shared by every estimator.
 
     Per frame k: ``k > 0``: predict (``est.predict``), constrain; record the one-step prediction
@@ -316,6 +317,9 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
         update their common translation moves into these (:meth:`TrackOffsets.recentre`): the seen points'
         predictions are unchanged, the model's rigid motion carries what all the tracks share, and the points it
         never updated (held out, born later) get it.
+    overdispersion : tracker.overdispersion.Overdispersion, optional
+        With estimated parameters (M > 0): their update tempered by the over-dispersion of their shifts over the
+        frames so far (docs/estimators.md §3.11); None: the plain update.
 
     Raises
     ------
@@ -365,6 +369,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             md["heldout_points"] = [int(i) for i in np.asarray(meas.point_ids)[np.asarray(heldout)]]
         if offsets is not None:
             md["track_offsets"] = offsets.summary()
+        if od is not None:
+            md["parameter_overdispersion"] = od.summary()
         return EstimateSet(est.name, meas.times, meas.point_ids, state_mean, state_var, theta, theta_std,
                            predictions, innovations, nis, dof, trunc, step_time, done, meta=md, phi_mean=phi_mean,
                            phi_cov=phi_cov, filtered=filtered, heart_rate=rates.get("heart_rate"),
@@ -372,6 +378,8 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
                            log_likelihood=np.where(np.arange(K) < done, loglik, np.nan))
 
     offsets = TrackOffsets(len(keep), drift) if drift else None
+    od = overdispersion if M else None
+
     state = prior
     for k in range(K):
         t0 = time.perf_counter()
@@ -412,7 +420,18 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             if res is None:
                 R = block_diag_R(blocks)[np.ix_(sub, sub)]
                 res = update(state, y_k[rows], Hz[rows], R, offset[rows], joseph=joseph)
-            state = res.state
+            if od is not None and res.dof:
+                posterior = res.state
+                if od.kappa > 1.0:             # the parameters' likelihood raised to 1 / kappa
+                    try:
+                        posterior = adjusted(res.state, *tempered_marginal(state, res.state, M, od.kappa), M)
+                        od.frames_adjusted += 1
+                    except (np.linalg.LinAlgError, sla.LinAlgError):   # a marginal not positive definite
+                        posterior = res.state
+                od.observe(state, res.state, M)   # state: this frame's prediction
+                state = posterior
+            else:
+                state = res.state
             if offsets is not None:
                 offsets.update(res, points=seen)
                 if translation:

@@ -487,7 +487,7 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
               options: JointOptions | None = None, points: ObservedPoints | None = None,
               progress: Callable[[int, int], None] | None = None, references: str = "fixed",
               adaptation=None, heldout=None, input_block=None, drift: float | None = None,
-              rate=None) -> EstimateSet:
+              rate=None, parameter_overdispersion: float | str = "auto") -> EstimateSet:
     """Run the GE, the joint UKF or the joint EKF over a measurement set.
 
     Parameters
@@ -511,6 +511,10 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
     adaptation : tracker.adaptive.AdaptationOptions, optional
         Estimate the parameters' random walk and the model error added to R from the innovations
         (:mod:`tracker.adaptive`); None keeps the model file's random walk and the measurement covariances.
+    parameter_overdispersion : 'auto' or float >= 1
+        The parameters' update tempered by the over-dispersion of their shifts (:mod:`tracker.overdispersion`,
+        docs/estimators.md §3.11): 'auto' estimates it over the frames so far (1 until it is beyond doubt); a
+        number fixes it (1: the plain update).
 
     Returns
     -------
@@ -565,7 +569,11 @@ def run_joint(model: PatchModel, meas: MeasurementSet, estimator: str = "ge", *,
         from .adaptive import NoiseAdaptation
 
         adapt = NoiseAdaptation(filt.M, dt, prior.Q_n, adaptation)
+    from .overdispersion import Overdispersion
+
+    od = Overdispersion(None if parameter_overdispersion == "auto" else float(parameter_overdispersion))
     return run_filter(filt, meas, prior.state, H, obs.reference, pts.keep, u, trans, prior.Q_n,
                       joseph=options.joseph, progress=progress, meta=meta, adapt=adapt, heldout=heldout,
                       drift=drift, translation=None if input_block is None else
-                      [H.shape[1] - input_block.size + i for i in input_block.translation_states])
+                      [H.shape[1] - input_block.size + i for i in input_block.translation_states],
+                      overdispersion=od)

@@ -160,3 +160,28 @@ def test_option_scope_and_single_frame_log(tmp_path, meas_file):
     res = _run(["track", str(one), "--model", PAPER, "--estimator", "ge", "-o", str(tmp_path / "one_est.npz")])
     assert res.exit_code == 0, res.output
     assert "n/a" in res.output
+
+
+def test_parameter_overdispersion_option(tmp_path, meas_file):
+    """--parameter-overdispersion: 'auto' by default (never adjusting on the simulated paper patch, whose model
+    holds), a fixed factor widens the parameters' band, and bad values or the KF exit 2."""
+    auto = _run(["track", meas_file, "--model", PAPER, "--estimator", "ge", "-o", str(tmp_path / "a.npz"), "--json"])
+    assert auto.exit_code == 0, auto.output
+    od = json.loads(auto.stdout)["parameter_overdispersion"]
+    assert od["mode"] == "estimated" and od["frames_adjusted"] == 0 and od["kappa_final"] == 1.0
+    assert read_estimates(str(tmp_path / "a.npz")).meta["parameter_overdispersion"] == od
+    fixed = _run(["track", meas_file, "--model", PAPER, "--estimator", "ge", "-o", str(tmp_path / "f.npz"),
+                  "--parameter-overdispersion", "9", "--json"])
+    assert fixed.exit_code == 0, fixed.output
+    s = json.loads(fixed.stdout)
+    assert s["parameter_overdispersion"]["mode"] == "fixed" and s["parameter_overdispersion"]["kappa_final"] == 9
+    assert s["theta_std_final"]["E"] > json.loads(auto.stdout)["theta_std_final"]["E"]
+    kf = _run(["track", meas_file, "--model", PAPER, "--estimator", "kf", "-o", str(tmp_path / "k.npz"), "--json"])
+    assert kf.exit_code == 0 and json.loads(kf.stdout)["parameter_overdispersion"] is None
+    for args, message in ((["--estimator", "kf", "--parameter-overdispersion", "2"], "ge, ukf, ekf"),
+                          (["--estimator", "ge", "--parameter-overdispersion", "0.5"], "factor in [1, 1e6]"),
+                          (["--estimator", "ge", "--parameter-overdispersion", "nan"], "factor in [1, 1e6]"),
+                          (["--estimator", "ukf", "--parameter-overdispersion", "some"], "'auto' or a factor")):
+        res = _run(["track", meas_file, "--model", PAPER, "-o", str(tmp_path / "x.npz"), *args])
+        assert res.exit_code == 2 and message in res.output, res.output
+        assert not os.path.exists(tmp_path / "x.npz")
