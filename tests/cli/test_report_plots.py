@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from cli.report_plots import _identical_series, parameter_figure, prediction_error_figure  # noqa: E402
+from heartcv.cli.report_plots import _identical_series, parameter_figure, prediction_error_figure  # noqa: E402
 
 
 def _legend_texts(fig):
