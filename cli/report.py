@@ -463,6 +463,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
                  field_degree=est.meta.get("field_degree"), rigid_harmonics=est.meta.get("rigid_harmonics"),
                  rigid_dynamics=(est.meta.get("rigid_dynamics") or {}).get("source"),
                  without_input=bool(est.meta.get("without_input", False)),
+                 parameter_overdispersion=est.meta.get("parameter_overdispersion"),
                  **{f"{r}_{k}": est.meta.get(f"{r}_{k}") for r in ("heart_rate", "respiration_rate")
                     for k in ("hz", "std_hz", "source")})
         estimators[label] = d

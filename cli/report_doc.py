@@ -205,6 +205,13 @@ def _heart_rates(doc) -> list:
         how = ("relearned by heartcv track from the KF's filtered motion over the fitted frames" if refit
                else "heartcv fit")
         lines.append(f"Rigid {motion} beyond {beyond}: {what} ({how}, docs/model.md 17), in {', '.join(labels)}.")
+    for label, e in doc["estimators"].items():
+        od = e.get("parameter_overdispersion") or {}
+        if od.get("frames_adjusted"):
+            lines.append(f"Parameters' update of {label} tempered by their over-dispersion {od['kappa_final']:.3g} "
+                         f"(their shifts' NIS per degree of freedom; 1 where the model holds) in "
+                         f"{od['frames_adjusted']} frames: its parameter bands allow for errors the points share "
+                         f"(docs/estimators.md 3.11).")
     return lines
 
 

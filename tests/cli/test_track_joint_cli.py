@@ -178,6 +178,16 @@ def test_parameter_overdispersion_option(tmp_path, meas_file):
     assert s["theta_std_final"]["E"] > json.loads(auto.stdout)["theta_std_final"]["E"]
     kf = _run(["track", meas_file, "--model", PAPER, "--estimator", "kf", "-o", str(tmp_path / "k.npz"), "--json"])
     assert kf.exit_code == 0 and json.loads(kf.stdout)["parameter_overdispersion"] is None
+    # the report carries it per run and says where it tempered
+    rep = _run(["report", str(tmp_path / "a.npz"), str(tmp_path / "f.npz"), str(tmp_path / "k.npz"),
+                "-o", str(tmp_path / "rep")])
+    assert rep.exit_code == 0, rep.output
+    runs = json.loads((tmp_path / "rep" / "metrics.json").read_text())["estimators"]
+    assert [runs[k]["parameter_overdispersion"] for k in ("ge:a", "ge:f", "kf")] == \
+        [od, s["parameter_overdispersion"], None]
+    summary = (tmp_path / "rep" / "summary.md").read_text()
+    assert "Parameters' update of ge:f tempered by their over-dispersion 9 " in summary
+    assert "update of ge:a" not in summary
     for args, message in ((["--estimator", "kf", "--parameter-overdispersion", "2"], "ge, ukf, ekf"),
                           (["--estimator", "ge", "--parameter-overdispersion", "0.5"], "factor in [1, 1e6]"),
                           (["--estimator", "ge", "--parameter-overdispersion", "nan"], "factor in [1, 1e6]"),
