@@ -767,22 +767,59 @@ def _subset_points(meas: MeasurementSet, idx) -> MeasurementSet:
         meta=meta)
 
 
-def _observed_translation(model, meas, keep, offsets, theta, kw) -> np.ndarray:
-    """(K, 3) the rigid translation per frame that the points ``keep`` with known offsets show under the model
-    (its inputs and centring in ``kw``): per frame the generalised least-squares mean of their measured position
-    minus offset minus model displacement; ``kw['translation']`` (the block's expectation) where none is seen."""
-    win = FitProblem(model, _subset_points(meas, keep), None, inputs=kw["inputs"],
-                     translation=np.zeros((meas.n_frames, 3)), centring=kw.get("centring"))
+def _observed_motion(model, meas, keep, offsets, theta, kw, field=None) -> tuple:
+    """The rigid motion per frame that the points ``keep`` with known offsets show under the model (its inputs and
+    centring in ``kw``), from their measured position minus offset minus model displacement by generalised least
+    squares: ``(translation (K, 3), field (K, n - 1, 3))``.
+
+    Without ``field`` (``None``, or a block of degree 0) the translation is the residuals' weighted mean and the
+    field is empty (n = 1). With ``field`` (an :class:`tracker.unknown_input.InputBlock` of degree d > 0) the
+    frame's residuals are fitted by the block's displacement field (:func:`tracker.unknown_input.field_basis` at
+    each point's offset, as the estimators evaluate it, with the block's centre, axes and scale), the constant
+    monomial's coefficients being the translation. A frame with fewer points than twice the monomials, or whose
+    points do not determine the field, keeps the previous frame's non-constant coefficients (zero before the
+    first) and fits the translation alone. Frames where none is seen take ``kw['translation']`` (the block's
+    expectation) and the previous frame's field."""
+    from .unknown_input import field_basis
+
+    sub = _subset_points(meas, keep)
+    win = FitProblem(model, sub, None, inputs=kw["inputs"], translation=np.zeros((meas.n_frames, 3)),
+                     centring=kw.get("centring"))
     r = win.y - np.asarray(offsets)[win.keep][win._point_idx] - win.displacements(np.asarray(theta, float))[win.seen]
     K = meas.n_frames
-    Wr = np.zeros((K, 3))
-    W = np.zeros((K, 3, 3))
-    np.add.at(Wr, win._frame_idx, np.einsum("nij,nj->ni", win._R_inv, r))
-    np.add.at(W, win._frame_idx, win._R_inv)
-    out = np.array(kw["translation"], float)
-    seen = np.bincount(win._frame_idx, minlength=K) > 0
-    out[seen] = np.linalg.solve(W[seen], Wr[seen][..., None])[..., 0]
-    return out
+    degree = 0 if field is None else int(field.field_degree)
+    if degree:
+        # at the points' offsets, where the estimators evaluate the field (InputBlock.motion_maps of the references)
+        phi = field_basis(np.asarray(offsets)[win.keep], degree, field.field_centre, field.field_axes,
+                          field.field_scale)[win._point_idx]
+    else:
+        phi = np.ones((r.shape[0], 1))
+    n = phi.shape[1]
+    trans = np.array(kw["translation"], float)
+    coef = np.zeros((K, n - 1, 3))
+    RinvR = np.einsum("nij,nj->ni", win._R_inv, r)
+    counts = np.bincount(win._frame_idx, minlength=K)
+    order = np.argsort(win._frame_idx, kind="stable")
+    bounds = np.r_[0, np.cumsum(counts)]
+    for k in range(K):
+        rows = order[bounds[k]:bounds[k + 1]]
+        if k and n > 1:
+            coef[k] = coef[k - 1]
+        if rows.size == 0:
+            continue
+        if n > 1 and rows.size >= 2 * n:
+            # (Φ ⊗ I3)ᵀ R⁻¹ (Φ ⊗ I3) and (Φ ⊗ I3)ᵀ R⁻¹ r, the unknowns ordered [c_1 (3) | c_2 (3) | ...]
+            N = np.einsum("na,nij,nb->aibj", phi[rows], win._R_inv[rows], phi[rows]).reshape(3 * n, 3 * n)
+            b = np.einsum("na,ni->ai", phi[rows], RinvR[rows]).reshape(3 * n)
+            if np.linalg.cond(N) < 1e12:
+                c = np.linalg.solve(N, b).reshape(n, 3)
+                trans[k] = c[0]
+                coef[k] = c[1:]
+                continue
+        # the translation alone, under the frame's field beyond it
+        rk = RinvR[rows] - np.einsum("nij,nj->ni", win._R_inv[rows], np.einsum("na,ai->ni", phi[rows, 1:], coef[k]))
+        trans[k] = np.linalg.solve(win._R_inv[rows].sum(axis=0), rk.sum(axis=0))
+    return trans, coef
 
 
 def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None,
@@ -810,7 +847,8 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
     With an ``input_block`` (a recording without pressure, :mod:`tracker.unknown_input`) the window's offsets are
     those of :class:`UnknownInputProblem` (input and rigid motion profiled, no model-error weighting) and the late
     points' those under the block's mean input continued over the sequence and the rigid translation that the
-    window's points show in each frame (:func:`_observed_translation`), not one extrapolated from the window.
+    window's points show in each frame (:func:`_observed_motion`; with a displacement field, the field they show, taken
+    off the late points' positions), not one extrapolated from the window.
 
     ``causal_ids``: point ids whose late references come from their first :data:`LATE_REFERENCE_FRAMES` seen frames
     only (``heartcv track --holdout``'s held-out tracks, whose measurements must not enter after those; every other
@@ -845,7 +883,18 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
                 pos[after], cov[after] = np.nan, np.nan
                 sub = dataclasses.replace(sub, positions=pos, covariances=cov)
             if late_kw:
-                late_kw["translation"] = _observed_translation(model, meas, keep, offsets, theta, late_kw)
+                # the rigid motion that the window's points show in each frame: its translation, and for a field
+                # its part beyond the translation at each late point (taken off the late points' positions)
+                late_kw["translation"], coef = _observed_motion(model, meas, keep, offsets, theta, late_kw,
+                                                                input_block)
+                if coef.shape[1]:
+                    from .unknown_input import field_basis
+
+                    # near the offsets being computed: the positions less the translation, over the frames used
+                    lever = np.nanmedian(sub.positions - late_kw["translation"][:, None, :], axis=0)  # (P_late, 3)
+                    phi = field_basis(np.nan_to_num(lever), input_block.field_degree, input_block.field_centre,
+                                      input_block.field_axes, input_block.field_scale)[:, 1:]  # (P_late, n - 1)
+                    sub = dataclasses.replace(sub, positions=sub.positions - np.einsum("pa,kai->kpi", phi, coef))
             late_prob = FitProblem(model, sub, None, **late_kw)
             late = candidates[late_prob.keep]
             late_off = late_prob.offsets(np.asarray(theta, float), relative_model_error)
