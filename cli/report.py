@@ -141,8 +141,9 @@ def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases
         name = f"image_{i + 1}_{Path(p).name}"
         shutil.copyfile(p, tmp / name)
         figures.append((name, f"{p} (given with --image)"))
-    figures += write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases,
-                             (metrics.get("tracks") or {}).get("noise_norm_bound_m"), metrics.get("fit_frames"))
+    tracks = metrics.get("tracks") or {}
+    figures += write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases, tracks.get("noise_norm_bound_m"),
+                             metrics.get("fit_frames"), (tracks.get("heart_rate_windows") or {}).get("windows"))
     metrics["figures"] = [f for f, _ in figures]
     metrics["files"] = [f for f, _ in figures] + ["metrics.json", "summary.md", "index.html"]
     doc = _jsonable(metrics)
@@ -277,14 +278,26 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
 def _track_motion(meas_file, runs=None) -> dict | None:
     """What the tracks' own motion says, without any model (docs/formats.md §14 ``tracks``): the residual of a
     quadratic displacement field per frame over one frame (an upper bound of the noise) and over half a second, the
-    data-driven autoregressive field predictor against ``hold`` (:func:`tracker.metrics.field_ar_prediction`) and,
-    when the runs held tracks out, the neighbour oracle for them (:func:`tracker.metrics.heldout_neighbour_oracle`);
-    None without --measurements or with too few frames."""
+    data-driven autoregressive field predictor against ``hold`` (:func:`tracker.metrics.field_ar_prediction`),
+    when the runs used a heart rate the tracks' own rate in windows and each run's agreement with it
+    (:func:`tracker.metrics.windowed_heart_rate`, :func:`tracker.metrics.rate_agreement`) and, when the runs held
+    tracks out, the neighbour oracle for them (:func:`tracker.metrics.heldout_neighbour_oracle`); None without
+    --measurements or with too few frames."""
     import math
 
     import numpy as np
 
-    from heartcv.tracker.metrics import field_ar_prediction, heldout_neighbour_oracle, smooth_field_residual
+    from heartcv.tracker.metrics import (
+        RATE_STEP_S,
+        RATE_WINDOW_S,
+        field_ar_prediction,
+        heldout_neighbour_oracle,
+        rate_agreement,
+        smooth_field_residual,
+        windowed_heart_rate,
+    )
+
+    from .report_plots import run_rates
 
     if not meas_file:
         return None
@@ -311,6 +324,13 @@ def _track_motion(meas_file, runs=None) -> dict | None:
                                "hold_error_mean_m": hold, "error_mean_m": float(np.nanmean(fp.predicted)),
                                "ratio_to_hold": fp.ratio(),
                                "oracle_ratio_to_hold": float(np.nanmean(fp.oracle)) / hold if hold > 0 else None}
+    out["heart_rate_windows"] = out["heart_rate_agreement"] = None
+    rates = run_rates(runs or {}, "heart_rate")
+    if rates:   # the runs used a heart rate: what the tracks' own spectrum says of it, window by window
+        windows = windowed_heart_rate(m.times, m.positions)
+        out["heart_rate_windows"] = {"window_s": RATE_WINDOW_S, "step_s": RATE_STEP_S, "windows": windows}
+        out["heart_rate_agreement"] = {k: a for k, (t, f, sd) in rates.items()
+                                       if (a := rate_agreement(windows, t, f, sd)) is not None} or None
     out["heldout_oracle"] = None
     ids = next((r["est"].meta["heldout_points"] for r in (runs or {}).values()
                 if r["est"].meta.get("heldout_points")), None)

@@ -175,6 +175,26 @@ def _track_facts(tr, noise_norm) -> list:
     return out
 
 
+def _rate_windows(doc) -> list:
+    """One line on the tracks' own heart rate in windows (report --measurements) and each run's agreement with it."""
+    tracks = doc.get("tracks") or {}
+    hw = tracks.get("heart_rate_windows")
+    if not hw or not hw.get("windows"):
+        return []
+    rated = [60 * w["frequency_hz"] for w in hw["windows"] if w.get("frequency_hz") is not None]
+    line = (f"The tracks' own heart rate in {hw['window_s']:g}-s windows every {hw['step_s']:g} s (heartcv fit's "
+            "estimator on the measurements, no model): ")
+    if rated:
+        line += (f"{min(rated):.4g}–{max(rated):.4g} bpm in {len(rated)} of {len(hw['windows'])} windows"
+                 + (" (the others show no clear heartbeat)" if len(rated) < len(hw["windows"]) else ""))
+    else:
+        line += f"no clear heartbeat in any of the {len(hw['windows'])} windows"
+    parts = [f"{label} within {a['z']:g}σ of it in {a['agree']} of {a['windows']} (mean |difference| "
+             f"{60 * a['mean_abs_difference_hz']:.2g} bpm, largest {60 * a['max_abs_difference_hz']:.2g})"
+             for label, a in (tracks.get("heart_rate_agreement") or {}).items()]
+    return [line + ("; " + "; ".join(parts) if parts else "") + "."]
+
+
 def _heart_rates(doc) -> list:
     """One line per distinct heart rate (and respiration rate) the runs used (an estimated input's, or the harmonic
     predictor's)."""
@@ -190,6 +210,7 @@ def _heart_rates(doc) -> list:
             how = "sampled; final posterior" if source and source.startswith("sampled") else "held constant"
             lines.append(f"{title}: {60 * f:.4g}{band} {unit} ({f:.4g} Hz{'' if std is None else f' ± {std:.2g}'}; "
                          f"{source or 'source not recorded'}), {how} by {', '.join(labels)}.")
+    lines += _rate_windows(doc)
     orders = {}
     for label, e in doc["estimators"].items():
         if e.get("rigid_ar_order") is not None:

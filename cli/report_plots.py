@@ -151,7 +151,7 @@ def _identical_series(series: dict) -> list:
     return groups
 
 
-def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=None, phases=None):
+def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=None, phases=None, reference=None):
     """Posterior mean of one parameter per estimator with its ±2σ band, and the truth if given; systole shaded
     when ``phases`` is given.
 
@@ -164,6 +164,9 @@ def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=Non
     series : dict label -> (times (K,), mean (K,), std (K,))
     truth : (times, values), optional
     phases : (times (K,), systole (K,) bool), optional
+    reference : list of (t_start, t_end, value, std), optional
+        An independent estimate over windows (the tracks' own heart rate), in the figure's units before any SI
+        prefix: black bars over each window with ±2σ error bars at its centre.
     """
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
@@ -184,6 +187,11 @@ def parameter_figure(name: str, unit: str, series: dict, colors: dict, truth=Non
     if truth is not None:
         ax.plot(truth[0], np.asarray(truth[1]) * scale, color="k", lw=1.2, ls="--", zorder=4)
         handles.append(Line2D([], [], color="k", lw=1.2, ls="--", label="truth"))
+    if reference:
+        for t0, t1, v, sd in reference:
+            ax.hlines(v * scale, t0, t1, color="k", lw=1.4, zorder=5)
+            ax.errorbar(0.5 * (t0 + t1), v * scale, yerr=2 * sd * scale, color="k", lw=1.0, capsize=3, zorder=5)
+        handles.append(Line2D([], [], color="k", lw=1.4, marker="|", label="tracks' spectrum (windows)"))
     if phases is not None and np.any(phases[1]):
         t, sys_ = np.asarray(phases[0], float), np.asarray(phases[1], bool)
         half = 0.5 * float(np.median(np.diff(t))) if t.size > 1 else 0.0
@@ -353,8 +361,28 @@ CAPTIONS = {
 }
 
 
+def run_rates(runs: dict, key: str = "heart_rate") -> dict:
+    """label -> (times (c,), mean (c,), std (c,)) in Hz of each run's ``key`` (``heart_rate`` or
+    ``respiration_rate``) over its completed steps: the GE's sampled posterior where it samples the rate, else the
+    constant the run used (``meta.<key>_hz`` with ``meta.<key>_std_hz``, 0 when not recorded); runs without one
+    are left out."""
+    rates = {}
+    for k, r in runs.items():
+        e, t = r["est"], np.asarray(r["est"].times, float)
+        c = e.completed_steps
+        trace = getattr(e, key)
+        if trace is not None:
+            hr = np.asarray(trace, float)[:c]
+            rates[k] = (t[:c], hr[:, 0], hr[:, 1])
+        elif isinstance(e.meta.get(f"{key}_hz"), (int, float)):
+            sd = e.meta.get(f"{key}_std_hz")
+            sd = float(sd) if isinstance(sd, (int, float)) else 0.0
+            rates[k] = (t[:c], np.full(c, float(e.meta[f"{key}_hz"])), np.full(c, sd))
+    return rates
+
+
 def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 150,
-                  level: float = 0.95, phases=None, noise_bound=None, fit_frames=None) -> list:
+                  level: float = 0.95, phases=None, noise_bound=None, fit_frames=None, rate_windows=None) -> list:
     """Write the report's PNGs into ``folder``; returns [(file name, caption)] in report order.
 
     Parameters
@@ -376,8 +404,10 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
     fit_frames : int or None
         The frames that fitted the parameters (report ``fit_frames``): their end is marked on the prediction-error
         figure.
+    rate_windows : list or None
+        The tracks' own heart rate in windows (:func:`tracker.metrics.windowed_heart_rate`), drawn on the heart-rate
+        figure.
     """
-    import numpy as np
 
     from heartcv.tracker.metrics import mean_noise_norm
     from heartcv.tracker.params import NAMES, UNITS
@@ -422,23 +452,16 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
              + ("; shaded: systole (the measured pressure above the midpoint of its range), unshaded: diastole."
                 if phases is not None and np.any(phases[1]) else "."))
     for key, unit in (("heart_rate", "bpm"), ("respiration_rate", "per min")):
-        rates = {}
-        for k, r in runs.items():   # the rate per run: the GE's sampled posterior, else the constant it used
-            e, t = r["est"], np.asarray(r["est"].times, float)
-            c = e.completed_steps
-            trace = getattr(e, key)
-            if trace is not None:
-                hr = np.asarray(trace, float)[:c]
-                rates[k] = (t[:c], 60 * hr[:, 0], 60 * hr[:, 1])
-            elif isinstance(e.meta.get(f"{key}_hz"), (int, float)):
-                sd = e.meta.get(f"{key}_std_hz")
-                sd = float(sd) if isinstance(sd, (int, float)) else 0.0
-                rates[k] = (t[:c], np.full(c, 60 * float(e.meta[f"{key}_hz"])), np.full(c, 60 * sd))
+        rates = {k: (t, 60 * m, 60 * sd) for k, (t, m, sd) in run_rates(runs, key).items()}
         if rates:
             title = key.replace("_", " ")
-            save(parameter_figure(title, unit, rates, colors), f"{key}.png",
+            ref = [(w["t_start_s"], w["t_end_s"], 60 * w["frequency_hz"], 60 * (w["std_hz"] or 0.0))
+                   for w in (rate_windows or []) if w.get("frequency_hz") is not None] if key == "heart_rate" else []
+            save(parameter_figure(title, unit, rates, colors, reference=ref or None), f"{key}.png",
                  f"{title.capitalize()}: the GE's sampled posterior mean with its ±2σ band where it samples the "
-                 "rate; a constant (the fit's, with its standard error) for the runs that hold it.")
+                 "rate; a constant (the fit's, with its standard error) for the runs that hold it."
+                 + (" Black: the tracks' own heart rate in windows of the measurements (heartcv fit's estimator, "
+                    "no model; the bar spans the window, ±2σ its standard error)." if ref else ""))
     with_nis = {k: (p["times"], p["nis"], p["nis_dof"], per[k]["nis_mean"] / per[k]["nis_mean_dof"])
                 for k, p in ps.items() if per[k]["nis_steps"]}
     if with_nis:

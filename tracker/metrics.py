@@ -957,3 +957,77 @@ def heldout_neighbour_oracle(positions, heldout, neighbours: int = 8, min_points
     if not err_o:
         return float("nan"), float("nan")
     return float(np.concatenate(err_o).mean()), float(np.concatenate(err_h).mean())
+
+
+RATE_WINDOW_S = 6.0
+"""Length of the windows in which :func:`windowed_heart_rate` takes the tracks' own heart rate (s): at least three
+beats down to 30 bpm, short enough to see a rate change over a minute."""
+
+RATE_STEP_S = 3.0
+"""Step between those windows (s): half a window, so each frame lies in two."""
+
+
+def windowed_heart_rate(times, positions, window_s: float = RATE_WINDOW_S, step_s: float = RATE_STEP_S) -> list:
+    """The tracks' own heart rate over sliding windows, with no model: :func:`tracker.unknown_input.
+    estimate_heart_rate` (the estimator of ``heartcv fit``: spectral peak, refined by a harmonic fit, with its
+    standard error) on the frames of each window ``[t0, t0 + window_s)``, t0 = first time, + ``step_s``, ... while
+    the window fits in the recording.
+
+    Returns a list of dicts ``{'t_start_s', 't_end_s', 'frequency_hz', 'std_hz', 'reason'}``: the rate and its
+    standard error (``reason`` None), or None for both and ``reason`` why the window shows no clear heartbeat. Empty
+    when the recording is shorter than one window."""
+    from .unknown_input import NoHeartbeat, estimate_heart_rate
+
+    t = np.asarray(times, float)
+    y = np.asarray(positions, float)
+    if y.ndim != 3 or y.shape[2] != 3 or y.shape[0] != t.size:
+        raise ValueError(f"positions: (K, P, 3) with K = {t.size} expected, got {y.shape}")
+    if not (window_s > 0 and step_s > 0):
+        raise ValueError(f"window_s and step_s must be positive, got {window_s} and {step_s}")
+    out = []
+    if t.size < 2:
+        return out
+    dt = float(np.median(np.diff(t)))
+    start = float(t[0])
+    while start + window_s <= t[-1] + dt + 1e-9 * window_s:
+        sel = (t >= start - 1e-9 * window_s) & (t < start + window_s - 1e-9 * window_s)
+        entry = {"t_start_s": start, "t_end_s": start + window_s, "frequency_hz": None, "std_hz": None,
+                 "reason": None}
+        try:
+            hr = estimate_heart_rate(t[sel], y[sel])
+            entry["frequency_hz"], entry["std_hz"] = float(hr.frequency_hz), float(hr.std_hz)
+        except NoHeartbeat as exc:
+            entry["reason"] = str(exc)
+        out.append(entry)
+        start += step_s
+    return out
+
+
+def rate_agreement(windows: list, times, mean_hz, std_hz, z: float = 2.0) -> dict | None:
+    """How a run's heart rate (per frame: posterior mean ``mean_hz`` and standard deviation ``std_hz``, (K,); a
+    constant for a run that holds it) agrees with the tracks' own rate in ``windows`` (:func:`windowed_heart_rate`).
+
+    Per window with a rate: the run's mean rate over the window's frames ``f̄`` and its mean standard deviation
+    ``s̄``; the window agrees when ``|f̄ - f_w| <= z sqrt(s̄² + σ_w²)``. Returns ``{'windows', 'agree', 'z',
+    'mean_abs_difference_hz', 'max_abs_difference_hz'}``, or None when no window has a rate (or none overlaps the
+    run's frames)."""
+    t = np.asarray(times, float)
+    m = np.asarray(mean_hz, float)
+    s = np.asarray(std_hz, float)
+    diffs, agree = [], 0
+    for w in windows:
+        if w.get("frequency_hz") is None:
+            continue
+        sel = (t >= w["t_start_s"]) & (t < w["t_end_s"]) & np.isfinite(m)
+        if not sel.any():
+            continue
+        f_run = float(np.mean(m[sel]))
+        s_run = float(np.mean(np.where(np.isfinite(s[sel]), s[sel], 0.0)))
+        s_w = w["std_hz"] if w.get("std_hz") is not None and np.isfinite(w["std_hz"]) else 0.0
+        d = abs(f_run - float(w["frequency_hz"]))
+        diffs.append(d)
+        agree += bool(d <= z * np.hypot(s_run, s_w))
+    if not diffs:
+        return None
+    return {"windows": len(diffs), "agree": int(agree), "z": float(z),
+            "mean_abs_difference_hz": float(np.mean(diffs)), "max_abs_difference_hz": float(np.max(diffs))}
