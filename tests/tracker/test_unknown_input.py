@@ -752,6 +752,25 @@ def test_centring_moves_the_models_mean_displacement_into_the_translation_and_no
         InputBlock.from_dict(d)
 
 
+def _late_born(meas, motion, K=90, late=(0, 5, 9), born=120):
+    """The paper-patch recording ``meas`` moved by ``motion`` (K_all, P or 1, 3), its points ``late`` first seen at
+    frame ``born``, blind-fitted over its first K frames (centred, nu fitted): ``(blind set, model, problem, fit,
+    alpha, alpha_std, rigid translation, heart rate)``."""
+    pos = meas.positions + motion
+    late = list(late)
+    pos[:born, late] = np.nan
+    cov = meas.covariances.copy()
+    cov[:born, late] = np.nan
+    blind = MeasurementSet(meas.times, meas.point_ids, pos, cov, meas.reference, np.zeros((meas.n_frames, 0)), (),
+                           (), "patch")
+    hr = estimate_heart_rate(blind.times[:K], blind.positions[:K])
+    fm = _model(72.0, estimate=["nu"])
+    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=K, centred=True)
+    res = fit(fm, blind, problem=prob)
+    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    return blind, fm, prob, res, alpha, sd, rigid, hr
+
+
 def test_points_born_after_the_fit_get_references_under_the_observed_translation(monkeypatch):
     """The paper patch at 72 bpm, pressure dropped, moved by a 2 mm ramp that starts after the fitted frames (0-89);
     3 points first seen at frame 120: their undeformed references (after the common gauge shift) are as good as the
@@ -768,18 +787,8 @@ def test_points_born_after_the_fit_get_references_under_the_observed_translation
     K = 90
     ramp = np.zeros((meas.n_frames, 1, 3))
     ramp[K:, 0] = np.linspace(0.0, 1.0, meas.n_frames - K)[:, None] * np.array([2e-3, 0.0, -1e-3])
-    pos = meas.positions + ramp
     late = [0, 5, 9]
-    pos[:120, late] = np.nan
-    cov = meas.covariances.copy()
-    cov[:120, late] = np.nan
-    blind = MeasurementSet(meas.times, meas.point_ids, pos, cov, meas.reference, np.zeros((meas.n_frames, 0)), (),
-                           (), "patch")
-    hr = estimate_heart_rate(blind.times[:K], blind.positions[:K])
-    fm = _model(72.0, estimate=["nu"])
-    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=K, centred=True)
-    res = fit(fm, blind, problem=prob)
-    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    blind, fm, prob, res, alpha, sd, rigid, hr = _late_born(meas, ramp, K, late)
     blk = input_block_from_fit(hr.frequency_hz, HARMONICS, prob.dt, 1, 0, alpha, sd, rigid, blind.times[:K],
                                centred=True)
     out = undeformed_references(fm, blind, res.theta, K, input_block=blk)
@@ -825,19 +834,8 @@ def test_points_born_after_the_fit_get_references_under_the_observed_field():
     uv = (X - centre) @ axes.T                                                  # (P, 2) along the surface (m)
     ramp = np.clip((np.arange(meas.n_frames) - K) / (meas.n_frames - K), 0, None)[:, None, None]
     turn = np.stack([-uv[:, 1], uv[:, 0]], axis=1) * 0.1 + uv * 0.03            # (P, 2): turn + stretch
-    motion = ramp * (turn @ axes)[None]
-    pos = meas.positions + motion
     late = [0, 5, 9]
-    pos[:120, late] = np.nan
-    cov = meas.covariances.copy()
-    cov[:120, late] = np.nan
-    blind = MeasurementSet(meas.times, meas.point_ids, pos, cov, meas.reference, np.zeros((meas.n_frames, 0)), (),
-                           (), "patch")
-    hr = estimate_heart_rate(blind.times[:K], blind.positions[:K])
-    fm = _model(72.0, estimate=["nu"])
-    prob = UnknownInputProblem(fm, blind, hr.frequency_hz, HARMONICS, 0, frames=K, centred=True)
-    res = fit(fm, blind, problem=prob)
-    alpha, sd, rigid = prob.input_solution(res.theta, res.reduced_chi2)
+    blind, fm, prob, res, alpha, sd, rigid, hr = _late_born(meas, ramp * (turn @ axes)[None], K, late)
     frame = prob.field_frame()
     field = prob.residual_field(res.theta, 1, frame)
     shift = np.mean(prob.offsets(res.theta) - meas.reference[prob.keep], axis=0)
