@@ -189,9 +189,15 @@ def _rate_windows(doc) -> list:
                  + (" (the others show no clear heartbeat)" if len(rated) < len(hw["windows"]) else ""))
     else:
         line += f"no clear heartbeat in any of the {len(hw['windows'])} windows"
-    parts = [f"{label} within {a['z']:g}σ of it in {a['agree']} of {a['windows']} (mean |difference| "
-             f"{60 * a['mean_abs_difference_hz']:.2g} bpm, largest {60 * a['max_abs_difference_hz']:.2g})"
-             for label, a in (tracks.get("heart_rate_agreement") or {}).items()]
+    groups = {}   # runs that held the same rate agree alike: one entry for them all
+    for label, a in (tracks.get("heart_rate_agreement") or {}).items():
+        groups.setdefault(tuple(sorted(a.items())), []).append(label)
+    parts = []
+    for key, labels in groups.items():
+        a = dict(key)
+        parts.append(f"{', '.join(labels)} within {a['z']:g}σ of it in {a['agree']} of {a['windows']} (mean "
+                     f"|difference| {60 * a['mean_abs_difference_hz']:.2g} bpm, largest "
+                     f"{60 * a['max_abs_difference_hz']:.2g})")
     return [line + ("; " + "; ".join(parts) if parts else "") + "."]
 
 

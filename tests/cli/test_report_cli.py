@@ -281,17 +281,17 @@ def test_report_meta_entries_are_checked(run, tmp_path):
 def test_heart_rate_against_the_tracks_own_spectrum(tmp_path):
     """With --measurements and runs that used a heart rate, the report takes the tracks' own rate in 6-s windows
     (the paper patch beats at 60 bpm: every window within 0.5 % of 1 Hz, measured 0.02 %) and says how each run's
-    rate agrees with it: the right rate in every window, a rate 15 % low in none (its mean |difference| 0.15 Hz); the
-    heart-rate figure draws them. Without a run that used a heart rate there is nothing to compare."""
+    rate agrees with it: the right rate in every window (two runs with it in one entry of the summary), a rate 15 %
+    low in none (its mean |difference| 0.15 Hz); the heart-rate figure draws them. Without a run that used a heart rate there is nothing to compare."""
     from heartcv.tracker.io import read_estimates, write_estimates
 
     _ok(main, ["-q", "model", "simulate", PAPER, "--duration", "12.5", "--seed", "1", "-o", tmp_path / "m.npz"])
     _ok(main, ["-q", "track", tmp_path / "m.npz", "--model", PAPER, "--estimator", "kf", "-o", tmp_path / "kf.npz"])
     est = read_estimates(tmp_path / "kf.npz")
-    for name, hz in (("right", 1.0), ("low", 0.85)):
+    for name, hz in (("right", 1.0), ("same", 1.0), ("low", 0.85)):
         write_estimates(tmp_path / f"{name}.npz", est, dict(est.meta, heart_rate_hz=hz, heart_rate_std_hz=0.005))
-    res = _report([tmp_path / "right.npz", tmp_path / "low.npz", "--measurements", tmp_path / "m.npz",
-                   "-o", tmp_path / "rep", "--json"])
+    res = _report([tmp_path / "right.npz", tmp_path / "same.npz", tmp_path / "low.npz", "--measurements",
+                   tmp_path / "m.npz", "-o", tmp_path / "rep", "--json"])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
     hw = doc["tracks"]["heart_rate_windows"]
@@ -303,6 +303,7 @@ def test_heart_rate_against_the_tracks_own_spectrum(tmp_path):
     assert "heart_rate.png" in doc["figures"]
     md = (tmp_path / "rep" / "summary.md").read_text()
     assert "The tracks' own heart rate in 6-s windows every 3 s" in md and "kf:low within 2σ of it in 0 of 3" in md
+    assert "kf:right, kf:same within 2σ of it in 3 of 3" in md      # runs that agree alike: one entry
     res = _report([tmp_path / "kf.npz", "--measurements", tmp_path / "m.npz", "-o", tmp_path / "rep2", "--json"])
     assert res.exit_code == 0, res.output
     tracks = json.loads(res.stdout)["tracks"]
