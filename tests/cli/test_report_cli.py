@@ -282,7 +282,8 @@ def test_heart_rate_against_the_tracks_own_spectrum(tmp_path):
     """With --measurements and runs that used a heart rate, the report takes the tracks' own rate in 6-s windows
     (the paper patch beats at 60 bpm: every window within 0.5 % of 1 Hz, measured 0.02 %) and says how each run's
     rate agrees with it: the right rate in every window (two runs with it in one entry of the summary), a rate 15 %
-    low in none (its mean |difference| 0.15 Hz); the heart-rate figure draws them. Without a run that used a heart rate there is nothing to compare."""
+    low in none (its mean |difference| 0.15 Hz); the heart-rate figure draws them. Without a run that used a heart
+    rate there is nothing to compare."""
     from heartcv.tracker.io import read_estimates, write_estimates
 
     _ok(main, ["-q", "model", "simulate", PAPER, "--duration", "12.5", "--seed", "1", "-o", tmp_path / "m.npz"])
