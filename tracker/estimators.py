@@ -199,7 +199,7 @@ class TrackOffsets:
     triangular inverse of the innovation's factor per frame.
     """
 
-    def __init__(self, n_points: int, std_per_frame: float, epochs=None):
+    def __init__(self, n_points: int, std_per_frame: float):
         if not (np.isfinite(std_per_frame) and std_per_frame > 0):
             raise ValueError(f"drift: a positive standard deviation per frame expected, got {std_per_frame}")
         self.q2 = float(std_per_frame) ** 2
@@ -207,11 +207,7 @@ class TrackOffsets:
         self.cov = np.zeros((n_points, 3, 3))
         self.n_updates = 0
         self.updated = np.zeros(n_points, bool)
-        self.epochs = np.zeros(n_points, np.int64) if epochs is None else np.asarray(epochs, np.int64).reshape(-1)
-        if self.epochs.shape != (n_points,) or (self.epochs < 0).any():
-            raise ValueError(f"epochs: {n_points} frame indices >= 0 expected, got shape {self.epochs.shape}")
-        self._fill = None     # (updated mask, points filled, their neighbours) of the last fill of epoch-0 points
-        self._late = {}       # late point -> (its neighbours, their offsets at its epoch)
+        self._fill = None     # (updated mask, points filled, their neighbours) of the last fill
 
     def predict(self) -> None:
         self.cov += self.q2 * np.eye(3)
@@ -262,62 +258,28 @@ class TrackOffsets:
         b[sel] -= c
         return c
 
-    def fill(self, positions, neighbours: int = NEIGHBOURS, frame: int | None = None) -> None:
-        """Give the points never updated (held out, not yet seen) the offset their ``neighbours`` nearest updated
-        points (by ``positions`` (P, 3), the points' references) took on since the never-updated point's reference
-        was set: the offsets' field where a point was never measured, from the other tracks only (docs/
-        estimators.md §3.9 "Points never updated").
-
-        A point's *epoch* (``epochs``) is the frame its reference belongs to: 0 for references from the fitted
-        frames, a later frame for a track born after them (its reference then holds what it did before). A point
-        of epoch 0 takes the mean offset of its nearest updated points of epoch 0; a point of epoch e > 0, from
-        the end of frame e (``frame``) on, the mean change since frame e of the offsets of its nearest points
-        updated by then (their offsets before its epoch are in its reference already)."""
+    def fill(self, positions, neighbours: int = NEIGHBOURS) -> None:
+        """Give the points never updated (held out, not yet seen) the mean offset of their ``neighbours`` nearest
+        updated points (by ``positions`` (P, 3), the points' references): the offsets' field where a point was
+        never measured, from the other tracks only (docs/estimators.md §3.9 "Points never updated")."""
         from scipy.spatial import cKDTree
 
-        b = self.mean.reshape(-1, 3)
-        never = ~self.updated
-        if not never.any() or not self.updated.any():
+        if self.updated.all() or not self.updated.any():
             return
-        pos = np.asarray(positions)
-        early = self.epochs == 0
-        src = np.flatnonzero(self.updated & early)
-        if src.size and (self._fill is None or not np.array_equal(self._fill[0], self.updated)):
-            dst = np.flatnonzero(never & early)            # the neighbours change only when points get updated
+        if self._fill is None or not np.array_equal(self._fill[0], self.updated):   # the neighbours change only
+            src = np.flatnonzero(self.updated)                                     # when points get updated
+            dst = np.flatnonzero(~self.updated)
             n = min(int(neighbours), src.size)
-            idx = cKDTree(pos[src]).query(pos[dst], k=n)[1] if dst.size else np.zeros((0, n), int)
+            _, idx = cKDTree(np.asarray(positions)[src]).query(np.asarray(positions)[dst], k=n)
             self._fill = (self.updated.copy(), dst, src[np.asarray(idx).reshape(dst.size, n)])
-        if src.size:
-            _, dst, near = self._fill
-            b[dst] = b[near].mean(axis=1)
-        if frame is None:
-            return
-        due = never & (self.epochs > 0) & (self.epochs <= int(frame))
-        due[list(self._late)] = False
-        starting = np.flatnonzero(due)
-        if starting.size:
-            src = np.flatnonzero(self.updated)
-            n = min(int(neighbours), src.size)
-            idx = np.asarray(cKDTree(pos[src]).query(pos[starting], k=n)[1]).reshape(starting.size, n)
-            for p, row in zip(starting, src[idx]):
-                self._late[int(p)] = (row, b[row].copy())
-        for p, (row, at_epoch) in self._late.items():
-            if never[p]:
-                b[p] = (b[row] - at_epoch).mean(axis=0)
+        _, dst, near = self._fill
+        b = self.mean.reshape(-1, 3)
+        b[dst] = b[near].mean(axis=1)
 
     def summary(self) -> dict:
         b = np.linalg.norm(self.mean.reshape(-1, 3), axis=1)
         return {"std_per_frame_m": float(np.sqrt(self.q2)), "final_norm_median_m": float(np.median(b)),
                 "final_norm_max_m": float(b.max(initial=0.0))}
-
-
-def _epochs(meas, keep) -> np.ndarray:
-    """The reference epoch of each kept point (:class:`TrackOffsets`): the first frame it is seen in for a track
-    whose reference came from its own frames after the fitted ones (``meta['late_points']``), else 0."""
-    late = np.isin(np.asarray(meas.point_ids)[keep], np.asarray(meas.meta.get("late_points") or [], np.int64))
-    seen = np.isfinite(np.asarray(meas.positions)[:, keep, 0])
-    first = np.where(seen.any(axis=0), seen.argmax(axis=0), 0)
-    return np.where(late, first, 0).astype(np.int64)
 
 
 def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u, trans, Q_n, *,
@@ -417,7 +379,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
                            respiration_rate=rates.get("respiration_rate"),
                            log_likelihood=np.where(np.arange(K) < done, loglik, np.nan))
 
-    offsets = TrackOffsets(len(keep), drift, _epochs(meas, keep)) if drift else None
+    offsets = TrackOffsets(len(keep), drift) if drift else None
     od = overdispersion if M else None
 
     state = prior
@@ -480,7 +442,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
                     for i in translation:
                         mean[M + i:M + i + 3] += c
                     state = GaussianState(mean, state.cov)
-                offsets.fill(reference, frame=k)
+                offsets.fill(reference)
             counters["jitter"] += res.jitter_events
             _check_runaway(state, M, "update")
             state, ev, low = est.constrain(state)

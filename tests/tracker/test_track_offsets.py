@@ -238,7 +238,7 @@ def test_common_motion_moves_into_the_rigid_translation_and_reaches_held_out_poi
     no_offsets = run_kalman(m, meas, theta, **kw)
     with monkeypatch.context() as mp:
         mp.setattr(TrackOffsets, "recentre", lambda self, points=None: np.zeros(3))
-        mp.setattr(TrackOffsets, "fill", lambda self, positions, neighbours=8, frame=None: None)
+        mp.setattr(TrackOffsets, "fill", lambda self, positions, neighbours=8: None)
         plain = run_kalman(m, meas, theta, drift=1e-4, **kw)
     _, held_now = _split_err(now, meas, held)
     _, held_plain = _split_err(plain, meas, held)
@@ -273,20 +273,14 @@ def test_recentre_and_fill_against_brute_force():
     np.testing.assert_array_equal(b[off.updated], before[off.updated])
 
 
-def test_recentre_on_the_points_of_the_frame_and_fill_of_late_points_against_brute_force():
-    """recentre(points): the mean offset of those points moves out of them only (stale tracks keep theirs, so
-    their predictions follow the translation). fill of a point whose reference belongs to frame e > 0 (a track born
-    after the fitted frames): from the end of frame e, the mean change since frame e of the offsets of its nearest
-    points updated by then (brute-force distances); points of epoch 0 take the mean offset of their nearest updated
-    points of epoch 0 only."""
+def test_recentre_on_the_points_of_the_frame_against_brute_force():
+    """recentre(points): the mean offset of those points (the frame's update) moves out of them only; every other
+    point keeps its offset (a track lost for now then moves with the translation the caller adds c to)."""
     rng = np.random.default_rng(7)
     P = 40
-    epochs = np.where(np.arange(P) < 25, 0, 5)
-    off = TrackOffsets(P, 1e-4, epochs)
+    off = TrackOffsets(P, 1e-4)
     off.mean = rng.standard_normal(3 * P)
     off.updated[:] = rng.random(P) < 0.6
-    off.updated[25:30] = True                         # late points already updated: the neighbours of epoch 0
-    off.updated[30:] = False                          # exclude them; late never-updated points
     b0 = off.mean.reshape(-1, 3).copy()
     pts = np.flatnonzero(off.updated)[::2]
     c = off.recentre(pts)
@@ -295,21 +289,4 @@ def test_recentre_on_the_points_of_the_frame_and_fill_of_late_points_against_bru
     others = np.setdiff1d(np.arange(P), pts)
     np.testing.assert_allclose(b[pts], b0[pts] - c, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(b[others], b0[others])
-    X = rng.standard_normal((P, 3))
-    off.fill(X, neighbours=4, frame=4)                # before the late points' epoch: they are not filled yet
-    late = np.arange(30, P)
-    np.testing.assert_array_equal(b[late], b0[late])
-    src0 = np.flatnonzero(off.updated & (epochs == 0))
-    for p in np.flatnonzero(~off.updated & (epochs == 0)):
-        near = src0[np.argsort(np.linalg.norm(X[src0] - X[p], axis=1))[:4]]
-        np.testing.assert_allclose(b[p], b[near].mean(axis=0), rtol=1e-14)
-    off.fill(X, neighbours=4, frame=5)                # at the epoch: the change so far is zero
-    np.testing.assert_allclose(b[late], 0.0, atol=1e-14)
-    at5 = b.copy()
-    src = np.flatnonzero(off.updated)
-    b[src] += rng.standard_normal((src.size, 3))      # the updated points' offsets move on
-    off.updated[3] = True                             # a point updated after frame 5 is no neighbour of theirs
-    off.fill(X, neighbours=4, frame=9)
-    for p in late:
-        near = src[np.argsort(np.linalg.norm(X[src] - X[p], axis=1))[:4]]
-        np.testing.assert_allclose(b[p], (b[near] - at5[near]).mean(axis=0), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(off.recentre(np.zeros(0, int)), 0.0)
