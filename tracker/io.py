@@ -228,6 +228,20 @@ def _check_report_meta(meta, path, K):
     rd = meta.get("rigid_dynamics")
     if rd is not None and (not isinstance(rd, dict) or rd.get("source") not in ("refit", "fit")):
         raise InputError(path, "a mapping with source 'refit' or 'fit' expected", "meta.rigid_dynamics")
+    od = meta.get("parameter_overdispersion")
+    if od is not None:                                 # written by track (tracker.overdispersion summary)
+        pre = "meta.parameter_overdispersion."
+        if not isinstance(od, dict):
+            raise InputError(path, f"a mapping expected, got {type(od).__name__}", pre.rstrip("."))
+        od = dict(od)
+        for key, kind, lo in (("kappa_final", "float", 0.0), ("nis_per_dof", "float", 0.0), ("alpha", "float", 0.0),
+                              ("dof", "int", 0), ("frames_adjusted", "int", 0)):
+            od[key] = get_field(od, key, kind, path, default=None, lo=lo, prefix=pre)
+        if od.get("mode") is not None:
+            get_field(od, "mode", "str", path, prefix=pre)
+        if od["frames_adjusted"] and od["kappa_final"] is None:
+            raise InputError(path, "required with frames_adjusted > 0, missing", pre + "kappa_final")
+        meta["parameter_overdispersion"] = od
     if meta.get("fit_frames") is not None:
         meta["fit_frames"] = get_field(meta, "fit_frames", "int", path, lo=1, hi=max(K, 1), prefix="meta.")
     ids = meta.get("heldout_points")

@@ -254,20 +254,23 @@ def test_render_truth_positions_into_the_patch_frame():
 def test_report_meta_entries_are_checked(run, tmp_path):
     """The estimate meta that the report reads is validated: a wrong type exits 2 naming the file and the field; a
     numeric string is read as its number (the fuzzer found meta.rigid_ar_order = [] and meta.held_parameters = 12345
-    crashing the summary and the figures)."""
+    crashing the summary and the figures, and meta.parameter_overdispersion = -1e308 crashing the summary)."""
     from heartcv.tracker.io import read_estimates, write_estimates
 
     est = read_estimates(run / "kf.npz")
     K = est.times.size
     cases = {"rigid_ar_order": [], "heart_rate_hz": [1.0], "fit_frames": K + 1, "without_input": "yes",
              "heldout_points": ["a"], "heart_rate_source": 3, "held_parameters": 12345, "field_degree": "one",
-             "rigid_harmonics": "six", "rigid_dynamics": 5}
-    for key, bad in cases.items():
-        path = tmp_path / f"bad_{key}.npz"
+             "rigid_harmonics": "six", "rigid_dynamics": 5, "parameter_overdispersion": -1e308,
+             "parameter_overdispersion.kappa_final": {"frames_adjusted": 3},
+             "parameter_overdispersion.frames_adjusted": {"kappa_final": 2.0, "frames_adjusted": "many"}}
+    for field, bad in cases.items():
+        key = field.split(".")[0]
+        path = tmp_path / f"bad_{field}.npz"
         write_estimates(path, est, dict(est.meta, **{key: bad}))
-        res = _report([path, "-o", tmp_path / f"rep_{key}"])
-        assert res.exit_code == 2 and str(path) in res.output and f"meta.{key}" in res.output, res.output
-        assert "Traceback" not in res.output and not (tmp_path / f"rep_{key}").exists()
+        res = _report([path, "-o", tmp_path / f"rep_{field}"])
+        assert res.exit_code == 2 and str(path) in res.output and f"meta.{field}" in res.output, res.output
+        assert "Traceback" not in res.output and not (tmp_path / f"rep_{field}").exists()
     good = tmp_path / "good.npz"
     write_estimates(good, est, dict(est.meta, heart_rate_hz="1.25", heart_rate_source="given", rigid_ar_order=2,
                                     fit_frames=K // 2))
