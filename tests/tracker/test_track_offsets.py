@@ -249,20 +249,26 @@ def test_common_motion_moves_into_the_rigid_translation_and_reaches_held_out_poi
     assert held_now < 0.85 * held_none, (held_now, held_none)
 
 
-def test_recentre_and_fill_against_brute_force():
-    """recentre: the mean offset of the updated points, removed from them only; fill: each point never updated
-    takes the mean offset of its nearest updated points (brute-force distances)."""
+@pytest.mark.parametrize("frame_points", [False, True])
+def test_recentre_and_fill_against_brute_force(frame_points):
+    """recentre: the mean offset of the updated points (or, given, of the points of the frame's update) removed from
+    them only, every other point keeping its offset (a track lost for now then moves with the translation the
+    caller adds c to); fill: each point never updated takes the mean offset of its nearest updated points
+    (brute-force distances)."""
     rng = np.random.default_rng(4)
     P = 30
     off = TrackOffsets(P, 1e-4)
     off.mean = rng.standard_normal(3 * P)
     off.updated[:] = rng.random(P) < 0.7
     b0 = off.mean.reshape(-1, 3).copy()
-    c = off.recentre()
-    np.testing.assert_allclose(c, b0[off.updated].mean(axis=0), rtol=1e-14)
+    pts = np.flatnonzero(off.updated)[::2] if frame_points else np.flatnonzero(off.updated)
+    c = off.recentre(pts) if frame_points else off.recentre()
+    np.testing.assert_allclose(c, b0[pts].mean(axis=0), rtol=1e-14)
     b = off.mean.reshape(-1, 3)
-    np.testing.assert_allclose(b[off.updated], b0[off.updated] - c, rtol=0, atol=1e-14)
-    np.testing.assert_array_equal(b[~off.updated], b0[~off.updated])
+    others = np.setdiff1d(np.arange(P), pts)
+    np.testing.assert_allclose(b[pts], b0[pts] - c, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(b[others], b0[others])
+    np.testing.assert_allclose(off.recentre(np.zeros(0, int)), 0.0)
     X = rng.standard_normal((P, 3))
     before = b.copy()
     off.fill(X, neighbours=4)
@@ -271,22 +277,3 @@ def test_recentre_and_fill_against_brute_force():
         near = src[np.argsort(np.linalg.norm(X[src] - X[p], axis=1))[:4]]
         np.testing.assert_allclose(b[p], before[near].mean(axis=0), rtol=1e-14)
     np.testing.assert_array_equal(b[off.updated], before[off.updated])
-
-
-def test_recentre_on_the_points_of_the_frame_against_brute_force():
-    """recentre(points): the mean offset of those points (the frame's update) moves out of them only; every other
-    point keeps its offset (a track lost for now then moves with the translation the caller adds c to)."""
-    rng = np.random.default_rng(7)
-    P = 40
-    off = TrackOffsets(P, 1e-4)
-    off.mean = rng.standard_normal(3 * P)
-    off.updated[:] = rng.random(P) < 0.6
-    b0 = off.mean.reshape(-1, 3).copy()
-    pts = np.flatnonzero(off.updated)[::2]
-    c = off.recentre(pts)
-    np.testing.assert_allclose(c, b0[pts].mean(axis=0), rtol=1e-14)
-    b = off.mean.reshape(-1, 3)
-    others = np.setdiff1d(np.arange(P), pts)
-    np.testing.assert_allclose(b[pts], b0[pts] - c, rtol=0, atol=1e-14)
-    np.testing.assert_array_equal(b[others], b0[others])
-    np.testing.assert_allclose(off.recentre(np.zeros(0, int)), 0.0)
