@@ -93,6 +93,11 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     assert _stages(calls) == sorted(ALL), calls
     assert _arg(calls, "rig", "--focal-px") == "400"
     assert run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400") == []
+    # the cameras' folder names (a recording in left/ and right/): the rig and everything after it
+    assert _arg(calls, "rig", "--names") == "cam0,cam1"
+    calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400", "IV_NAMES=left,right")
+    assert _stages(calls) == sorted(ALL), calls
+    assert _arg(calls, "rig", "--names") == "left,right"
 
 
 def test_demo_reruns_what_a_changed_setting_affects(make_stub):
