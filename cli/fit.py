@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 import logging
+import math
 from pathlib import Path
 
 import click
@@ -232,6 +233,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     from heartcv.tracker.unknown_input import (
         FIELD_DEGREE,
         HARMONICS,
+        PEAK_PROMINENCE,
         NoHeartbeat,
         Respiration,
         estimate_heart_rate,
@@ -247,7 +249,13 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     except NoHeartbeat as exc:
         raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written") from None
     log.info("heart rate %.4g ± %.2g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's "
-             "median", hr.frequency_hz, hr.std_hz, 60 * hr.frequency_hz, hr.beats, hr.peak_ratio)
+             "median and %.2gx its surroundings", hr.frequency_hz, hr.std_hz, 60 * hr.frequency_hz, hr.beats,
+             hr.peak_ratio, hr.prominence)
+    if hr.prominence < PEAK_PROMINENCE:
+        log.warning("the tracks' spectral peak at %.3g Hz stands only %.2gx above their spectrum at half and one and "
+                    "a half times that frequency (a heartbeat: %gx and more): it may be drift, not a heartbeat; "
+                    "check the windowed heart rates of `heartcv report --measurements` (docs/model.md 17)",
+                    hr.peak_hz, hr.prominence, PEAK_PROMINENCE)
     cfg = m.config
     held = [n for n in cfg.estimation.estimate if n == "E"]
     fit_model = m
@@ -288,7 +296,9 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     entry = block.to_dict()
     entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "std_hz": hr.std_hz, "bpm": 60 * hr.frequency_hz,
                              "peak_hz": hr.peak_hz,
-                             "peak_ratio": hr.peak_ratio, "beats": hr.beats, "points": hr.points},
+                             "peak_ratio": hr.peak_ratio,
+                             "peak_prominence": hr.prominence if math.isfinite(hr.prominence) else None,
+                             "beats": hr.beats, "points": hr.points},
                  respiration=resp.to_dict(),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
                  held_fixed=["E"] if fit_model is not m else [], fit_frames=K, rigid_ar_order=block.ar_order,
@@ -326,6 +336,8 @@ def _summary(result, output) -> dict:
         "registration_rms_m": None if result.registration is None else result.registration["rms_m"],
         "patch": None if result.registration is None else result.registration.get("patch"),
         "heart_rate_hz": None if result.estimated_input is None else result.estimated_input["frequency_hz"],
+        "heart_rate_peak_prominence": None if result.estimated_input is None
+        else (result.estimated_input.get("heart_rate") or {}).get("peak_prominence"),
         "input_amplitudes_pa": None if result.estimated_input is None else result.estimated_input["amplitudes_pa"],
         "respiration_hz": None if result.estimated_input is None
         else (result.estimated_input.get("respiration") or {}).get("frequency_hz"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from heartcv.tracker.params import NAMES, UNITS
+from heartcv.tracker.unknown_input import PEAK_PROMINENCE
 
 __all__ = ["markdown", "html", "mm"]
 
@@ -187,6 +188,11 @@ def _rate_windows(doc) -> list:
     if rated:
         line += (f"{min(rated):.4g}–{max(rated):.4g} bpm in {len(rated)} of {len(hw['windows'])} windows"
                  + (" (the others show no clear heartbeat)" if len(rated) < len(hw["windows"]) else ""))
+        faint = sum(1 for w in hw["windows"] if w.get("frequency_hz") is not None
+                    and w.get("peak_prominence") is not None and w["peak_prominence"] < PEAK_PROMINENCE)
+        if faint:
+            line += (f"; in {faint} of them the spectral peak stands less than {PEAK_PROMINENCE:g}x above the spectrum "
+                     "at half and one and a half times its frequency: it may be drift, not a heartbeat")
     else:
         line += f"no clear heartbeat in any of the {len(hw['windows'])} windows"
     groups = {}   # runs that held the same rate agree alike: one entry for them all

@@ -27,6 +27,7 @@ Applications to Tracking and Navigation*, 2001, §5.4).
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -973,9 +974,11 @@ def windowed_heart_rate(times, positions, window_s: float = RATE_WINDOW_S, step_
     standard error) on the frames of each window ``[t0, t0 + window_s)``, t0 = first time, + ``step_s``, ... while
     the window fits in the recording.
 
-    Returns a list of dicts ``{'t_start_s', 't_end_s', 'frequency_hz', 'std_hz', 'reason'}``: the rate and its
-    standard error (``reason`` None), or None for both and ``reason`` why the window shows no clear heartbeat. Empty
-    when the recording is shorter than one window."""
+    Returns a list of dicts ``{'t_start_s', 't_end_s', 'frequency_hz', 'std_hz', 'peak_prominence', 'reason'}``: the
+    rate, its standard error and its spectral peak's prominence (:func:`tracker.unknown_input.peak_prominence`;
+    below :data:`tracker.unknown_input.PEAK_PROMINENCE` the rate may be drift's) (``reason`` None), or None for
+    them and ``reason`` why the window shows no clear heartbeat. Empty when the recording is shorter than one
+    window."""
     from .unknown_input import NoHeartbeat, estimate_heart_rate
 
     t = np.asarray(times, float)
@@ -992,10 +995,11 @@ def windowed_heart_rate(times, positions, window_s: float = RATE_WINDOW_S, step_
     while start + window_s <= t[-1] + dt + 1e-9 * window_s:
         sel = (t >= start - 1e-9 * window_s) & (t < start + window_s - 1e-9 * window_s)
         entry = {"t_start_s": start, "t_end_s": start + window_s, "frequency_hz": None, "std_hz": None,
-                 "reason": None}
+                 "peak_prominence": None, "reason": None}
         try:
             hr = estimate_heart_rate(t[sel], y[sel])
             entry["frequency_hz"], entry["std_hz"] = float(hr.frequency_hz), float(hr.std_hz)
+            entry["peak_prominence"] = float(hr.prominence) if math.isfinite(hr.prominence) else None
         except NoHeartbeat as exc:
             entry["reason"] = str(exc)
         out.append(entry)

@@ -34,7 +34,8 @@ import math
 import numpy as np
 
 __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
-           "DRIFT_PER_SQRT_S", "PEAK_RATIO", "BAND_HZ", "filled_tracks", "spectral_peak",
+           "DRIFT_PER_SQRT_S", "PEAK_RATIO", "PEAK_PROMINENCE", "BAND_HZ", "filled_tracks", "spectral_peak",
+           "peak_prominence",
            "fit_harmonics", "input_block_from_fit", "extend_observation",
            "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs", "RatePrior",
            "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN", "Respiration", "estimate_respiration", "respiration_prior",
@@ -55,6 +56,11 @@ to-beat changes of amplitude and phase (heart-rate variability) of 20 % over one
 PEAK_RATIO = 10.0
 """A heartbeat needs a spectral peak this many times the band's median power (a heartbeat gives 100x and more;
 white noise a few)."""
+
+PEAK_PROMINENCE = 2.0
+"""A heartbeat's spectral peak stands at least this many times above the spectrum half its frequency below and
+above it (:func:`peak_prominence`); below, ``heartcv fit`` warns that the peak may be drift. Not a refusal: a real
+heart's short window can come close (the in-vivo heart's 2.4-s window: 2.1; its 4-s and 6-s windows 2.7-12)."""
 
 BAND_HZ = (0.5, 4.0)
 """Heart rates searched (30-240 bpm)."""
@@ -99,6 +105,9 @@ class HeartRate:
     std_hz : float           standard error of ``frequency_hz``: the profile curvature of the harmonic fit's residual
                              sum of squares, ``sqrt(2 s^2 / RSS''(f))`` with ``s^2 = RSS / (K - 2H - 2)`` (white
                              residuals assumed; residuals correlated over frames make it optimistic)
+    prominence : float       :func:`peak_prominence` at ``peak_hz``: how far the peak stands above the spectrum
+                             half its frequency below and above it (a falling spectrum's edge, drift, is below
+                             :data:`PEAK_PROMINENCE`)
     """
 
     frequency_hz: float
@@ -107,6 +116,7 @@ class HeartRate:
     beats: float
     points: int
     std_hz: float = float("nan")
+    prominence: float = float("nan")
 
 
 def filled_tracks(times, positions, min_seen=0.9):
@@ -125,13 +135,35 @@ def filled_tracks(times, positions, min_seen=0.9):
     return (np.stack(cols, axis=1) if cols else np.zeros((K, 0))), use.size
 
 
+def _power_spectrum(Y, dt: float):
+    """``(frequencies (Hz), power)``: the summed Hann-windowed power spectrum of the series Y (K, n)."""
+    K = Y.shape[0]
+    power = (np.abs(np.fft.rfft(Y * np.hanning(K)[:, None], axis=0)) ** 2).sum(axis=1)
+    return np.fft.rfftfreq(K, dt), power
+
+
+def peak_prominence(Y, dt: float, peak_hz: float) -> float:
+    """How far a spectral peak at ``peak_hz`` stands above its surroundings: the summed Hann-windowed power of the
+    series Y (K, n) at ``peak_hz`` over the geometric mean of the power at ``peak_hz / 2`` and ``3 peak_hz / 2``
+    (half a harmonic spacing below and above; linear interpolation between bins). A periodic motion's fundamental
+    stands far above both (its harmonics lie at ``2 peak_hz``, ``3 peak_hz``, ...); a power-law spectrum
+    ``P ~ f^-a`` gives ``(3/4)^(a/2)`` whatever the frequency (0.75 for a random walk, a = 2), so the largest "peak"
+    of drift, at the low end of the band, is not prominent although it towers over the band's median. NaN when
+    ``3 peak_hz / 2`` lies beyond the Nyquist frequency or a power is zero."""
+    f, power = _power_spectrum(np.asarray(Y, float), dt)
+    if not (peak_hz > 0 and 1.5 * peak_hz <= f[-1]):
+        return float("nan")
+    p0, lo, hi = np.interp([peak_hz, 0.5 * peak_hz, 1.5 * peak_hz], f, power)
+    if not (lo > 0 and hi > 0):
+        return float("nan")
+    return float(p0 / math.sqrt(lo * hi))
+
+
 def spectral_peak(Y, dt: float, band=BAND_HZ):
     """``(peak_hz, ratio, bin_hz)`` of filled, detrended series Y (K, n) (:func:`filled_tracks`): the largest peak in
     ``band`` of their summed Hann-windowed power spectrum, refined by parabolic interpolation of the log power, and
     its power over the band's median; ``(None, 0, bin_hz)`` when the band holds fewer than 3 bins."""
-    K = Y.shape[0]
-    power = (np.abs(np.fft.rfft(Y * np.hanning(K)[:, None], axis=0)) ** 2).sum(axis=1)
-    f = np.fft.rfftfreq(K, dt)
+    f, power = _power_spectrum(Y, dt)
     df = float(f[1] - f[0])
     band_idx = np.flatnonzero((f >= band[0]) & (f <= band[1]))
     if band_idx.size < 3:
@@ -272,7 +304,8 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
     if beats < MIN_BEATS - 1e-9:
         raise NoHeartbeat(f"{duration:.3g} s holds {beats:.2g} heartbeats at the tracks' heart rate {res.x:.4g} Hz: "
                           f"at least {MIN_BEATS:g} are needed")
-    return HeartRate(float(res.x), peak, ratio, beats, int(n_points), _frequency_std(tt, s, float(res.x), harmonics))
+    return HeartRate(float(res.x), peak, ratio, beats, int(n_points), _frequency_std(tt, s, float(res.x), harmonics),
+                     peak_prominence(Y, dt, peak))
 
 
 def _frequency_std(t, s, f, harmonics) -> float:

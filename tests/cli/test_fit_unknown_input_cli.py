@@ -11,6 +11,7 @@ import pytest
 from heartcv.cli.main import main
 from heartcv.tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
 from heartcv.tracker.measurements import MeasurementSet
+from heartcv.tracker.unknown_input import PEAK_PROMINENCE
 from tests.conftest import SAMPLES
 
 PAPER = str(SAMPLES / "paper_patch.yaml")
@@ -39,6 +40,9 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert s["heart_rate_hz"] == pytest.approx(1.0, rel=0.01)       # paper_patch.yaml: 60 bpm
     p = read_parameters(params)
     assert p.estimated_input["held_fixed"] == ["E"] and p.estimated == ("nu",)
+    # a heartbeat's peak is prominent (measured 7.3 over these 3 beats): no warning
+    assert p.estimated_input["heart_rate"]["peak_prominence"] > 2 * PEAK_PROMINENCE and "may be drift" not in res.output
+    assert s["heart_rate_peak_prominence"] == p.estimated_input["heart_rate"]["peak_prominence"]
     assert len(p.estimated_input["amplitudes_pa"]) == 12
     out = str(tmp_path / "kf.npz")
     res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", params, "--estimator", "kf",
@@ -188,6 +192,31 @@ def test_fit_exits_1_without_a_heartbeat(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["fit", flat, "--model", PAPER, "-o", str(tmp_path / "p.yaml")])
     assert res.exit_code == 1 and "no periodic motion" in res.output
     assert not (tmp_path / "p.yaml").exists()
+
+
+def test_fit_warns_when_the_peak_may_be_drift(tmp_path, blind_file):
+    """Tracks that drift (random walks, no heartbeat) can pass the band-median test; when their peak is not
+    prominent (tracker.unknown_input.peak_prominence) fit says it may be drift, whatever the fit then does."""
+    from heartcv.tracker.unknown_input import NoHeartbeat, estimate_heart_rate
+
+    m = read_measurements(blind_file)
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        walk = np.cumsum(rng.standard_normal(m.positions.shape), axis=0) \
+            + 3 * np.cumsum(rng.standard_normal((m.n_frames, 1, 3)), axis=0)
+        positions = m.reference[None] + 1e-4 * walk
+        try:
+            if estimate_heart_rate(m.times, positions).prominence < PEAK_PROMINENCE:
+                break
+        except NoHeartbeat:
+            pass
+    else:
+        pytest.fail("no drift of 40 passed the band-median test with a peak that is not prominent")
+    drift = str(tmp_path / "drift.npz")
+    write_measurements(drift, dataclasses.replace(m, positions=positions))
+    res = CliRunner().invoke(main, ["fit", drift, "--model", PAPER, "-o", str(tmp_path / "p.yaml")])
+    assert res.exit_code in (0, 1) and "Traceback" not in res.output, res.output
+    assert "may be drift, not a heartbeat" in res.output, res.output
 
 
 def test_fit_exits_1_when_the_observed_patch_holds_too_few_points(tmp_path, monkeypatch):

@@ -301,6 +301,7 @@ def test_heart_rate_against_the_tracks_own_spectrum(tmp_path):
     hw = doc["tracks"]["heart_rate_windows"]
     assert (hw["window_s"], hw["step_s"]) == (6.0, 3.0) and len(hw["windows"]) == 3
     assert all(w["frequency_hz"] == pytest.approx(1.0, rel=5e-3) for w in hw["windows"])
+    assert all(w["peak_prominence"] > 10 for w in hw["windows"])      # a heartbeat's peak: prominent
     agree = doc["tracks"]["heart_rate_agreement"]
     assert (agree["kf:right"]["agree"], agree["kf:low"]["agree"]) == (3, 0), agree
     assert agree["kf:low"]["mean_abs_difference_hz"] == pytest.approx(0.15, abs=0.005)
@@ -308,7 +309,27 @@ def test_heart_rate_against_the_tracks_own_spectrum(tmp_path):
     md = (tmp_path / "rep" / "summary.md").read_text()
     assert "The tracks' own heart rate in 6-s windows every 3 s" in md and "kf:low within 2σ of it in 0 of 3" in md
     assert "kf:right, kf:same within 2σ of it in 3 of 3" in md      # runs that agree alike: one entry
+    assert "may be drift" not in md
     res = _report([tmp_path / "kf.npz", "--measurements", tmp_path / "m.npz", "-o", tmp_path / "rep2", "--json"])
     assert res.exit_code == 0, res.output
     tracks = json.loads(res.stdout)["tracks"]
     assert tracks["heart_rate_windows"] is None and tracks["heart_rate_agreement"] is None
+
+
+def test_summary_says_which_window_rates_may_be_drift():
+    """A window whose rate comes from a peak that is not prominent (tracker.unknown_input.peak_prominence below
+    PEAK_PROMINENCE) is counted in the summary's line on the windowed rates; a window without a rate is not."""
+    from heartcv.cli.report_doc import _rate_windows
+
+    windows = [{"t_start_s": 0.0, "t_end_s": 6.0, "frequency_hz": 1.0, "std_hz": 0.01, "peak_prominence": 1.3},
+               {"t_start_s": 3.0, "t_end_s": 9.0, "frequency_hz": 1.1, "std_hz": 0.01, "peak_prominence": 8.0},
+               {"t_start_s": 6.0, "t_end_s": 12.0, "frequency_hz": None, "std_hz": None, "peak_prominence": None,
+                "reason": "no periodic motion"}]
+    line = " ".join(_rate_windows({"tracks": {"heart_rate_windows": {"window_s": 6.0, "step_s": 3.0,
+                                                                      "windows": windows}}}))
+    assert "60–66 bpm in 2 of 3 windows (the others show no clear heartbeat)" in line, line
+    assert "in 1 of them the spectral peak stands less than 2x above" in line and "may be drift" in line, line
+    windows[0]["peak_prominence"] = 2.5
+    line = " ".join(_rate_windows({"tracks": {"heart_rate_windows": {"window_s": 6.0, "step_s": 3.0,
+                                                                      "windows": windows}}}))
+    assert "may be drift" not in line, line
