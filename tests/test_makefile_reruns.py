@@ -5,6 +5,7 @@ writes the files the recipe expects, so the test checks make's decisions in a se
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 import shutil
 import subprocess
@@ -98,6 +99,17 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400", "IV_NAMES=left,right")
     assert _stages(calls) == sorted(ALL), calls
     assert _arg(calls, "rig", "--names") == "left,right"
+    # a rig file of the user's (calibrated, imported): no rectified rig; measure reads it, and re-runs when it
+    # changes; the user's file is only read
+    rig = tmp / "my_rig.yaml"
+    rig.write_text("stub rig\n")
+    calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", f"IV_RIG={rig}")
+    assert _stages(calls) == sorted(ALL[1:]), calls
+    assert _arg(calls, "measure", "--rig") == str(rig)
+    assert run(f"INVIVO={heart_b}", "HOLDOUT=0.2", f"IV_RIG={rig}") == []
+    os.utime(rig, (rig.stat().st_atime, rig.stat().st_mtime + 10))
+    assert _stages(run(f"INVIVO={heart_b}", "HOLDOUT=0.2", f"IV_RIG={rig}")) == sorted(ALL[1:])
+    assert rig.read_text() == "stub rig\n"
 
 
 def test_demo_reruns_what_a_changed_setting_affects(make_stub):
