@@ -85,10 +85,16 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     calls = run(f"INVIVO={heart_a}", "HOLDOUT=0.2")
     assert _stages(calls) == sorted(AFTER_MEASURE), calls
     assert all(c[c.index("--holdout") + 1] == "0.2" for c in calls if c[0] == "track")
+    assert {_arg([c], "fit", "--frames") for c in calls if c[0] == "fit"} == {"100"}   # 4 s at 25 fps
     # another recording: everything again, on it (before the stamps, the earlier recording's report was shown)
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2")
     assert _stages(calls) == sorted(ALL), calls
     assert next(c for c in calls if c[0] == "measure")[1] == heart_b
+    # the frame rate: the fitted window stays 4 s (IV_FIT_S), so its frames follow
+    calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FPS=50")
+    assert _stages(calls) == sorted(ALL), calls
+    assert _arg(calls, "measure", "--fps") == "50" and _arg(calls, "fit", "--frames") == "200"
+    assert _arg(run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FIT_S=6"), "fit", "--frames") == "150"
     # the rig's geometry: the rig and everything after it
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400")
     assert _stages(calls) == sorted(ALL), calls
