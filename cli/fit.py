@@ -10,7 +10,18 @@ from pathlib import Path
 
 import click
 
-from .options import MAX_COUNT, BadInput, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model, seed_opt
+from .options import (
+    MAX_COUNT,
+    BadInput,
+    Float,
+    Int,
+    StageFailed,
+    emit_json,
+    guard_outputs,
+    json_opt,
+    load_model,
+    seed_opt,
+)
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +37,9 @@ MAX_STARTS = 1000
               help="Parameters file to write (.yaml).")
 @click.option("--frames", type=Int(2, MAX_COUNT), default=None,
               help="Fit the first N frames only (default: all), e.g. two cardiac cycles.")
+@click.option("--duration", type=Float(0, 1e6, lo_open=True), default=None, metavar="SECONDS",
+              help="Fit the frames of the first SECONDS only (times from the measurement file; default: all). "
+                   "Not with --frames.")
 @click.option("--starts", type=Int(1, MAX_STARTS), default=3, show_default=True,
               help="Starts: the model file's parameters plus STARTS-1 draws from its prior; the best converged wins.")
 @seed_opt
@@ -65,8 +79,8 @@ MAX_STARTS = 1000
                    "file's patch (an endoscope's view), else 'model' with the dominant deformation of the first "
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
-def fit(measurements, model_file, output, frames, starts, seed, max_evaluations, input_mode, harmonics, respiration,
-        rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
+def fit(measurements, model_file, output, frames, duration, starts, seed, max_evaluations, input_mode, harmonics,
+        respiration, rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -80,13 +94,22 @@ def fit(measurements, model_file, output, frames, starts, seed, max_evaluations,
     from heartcv.tracker.files import InputError
     from heartcv.tracker.fit import fit as run_fit
     from heartcv.tracker.io import file_hash, read_measurements, write_parameters
+    from heartcv.tracker.measurements import frames_within
     from heartcv.tracker.unknown_input import HARMONICS
 
     if Path(output).suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
+    if frames is not None and duration is not None:
+        raise BadInput("--frames and --duration: give one of them")
     guard_outputs({"-o/--output": output}, {"MEASUREMENTS": measurements, "--model": model_file},
                   files=[("-o/--output", output)])
     meas = read_measurements(measurements)
+    if duration is not None:
+        frames = frames_within(meas.times, duration)
+        if frames < 2:
+            raise BadInput(f"--duration {duration:g}: the first {duration:g} s of {measurements} hold {frames} "
+                           "frame(s); at least 2 are needed")
+        log.info("--duration %g s: the first %d frames", duration, frames)
     m = load_model(model_file)
     if not m.config.estimation.estimate:
         raise BadInput(f"{model_file}: estimation.estimate is empty; nothing to fit")

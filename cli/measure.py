@@ -253,7 +253,8 @@ def _frame_times(source, fps, count):
     ts = source.folder / "timestamps.csv"
     stamps = read_timestamps(ts, source.frame_names) if fps is None and ts.is_file() else None
     if stamps is None and fps is None and source.fps is None:
-        log.info("no timestamps.csv and no --fps: assuming %g frames per second", DEFAULT_FPS)
+        log.warning("no timestamps.csv, no video frame rate and no --fps: assuming %g frames per second (the times, "
+                    "and every rate fitted from them, scale with it; pass --fps)", DEFAULT_FPS)
     return frame_times(count, timestamps=stamps, fps=fps, video_fps=source.fps)
 
 

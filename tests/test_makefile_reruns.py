@@ -80,21 +80,26 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     calls = run(f"INVIVO={heart_a}")
     assert _stages(calls) == sorted(ALL), calls
     assert next(c for c in calls if c[0] == "measure")[1] == heart_a
+    # a recording of the user's: its own frame rate (measure reads it), the first 4 s fitted
+    assert "--fps" not in next(c for c in calls if c[0] == "measure")
+    assert {_arg([c], "fit", "--duration") for c in calls if c[0] == "fit"} == {"4"}
     assert run(f"INVIVO={heart_a}") == []                           # nothing changed: nothing runs
     # a setting of the fit and the trackers: the measurement is kept
     calls = run(f"INVIVO={heart_a}", "HOLDOUT=0.2")
     assert _stages(calls) == sorted(AFTER_MEASURE), calls
     assert all(c[c.index("--holdout") + 1] == "0.2" for c in calls if c[0] == "track")
-    assert {_arg([c], "fit", "--frames") for c in calls if c[0] == "fit"} == {"100"}   # 4 s at 25 fps
     # another recording: everything again, on it (before the stamps, the earlier recording's report was shown)
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2")
     assert _stages(calls) == sorted(ALL), calls
     assert next(c for c in calls if c[0] == "measure")[1] == heart_b
-    # the frame rate: the fitted window stays 4 s (IV_FIT_S), so its frames follow
+    # a frame rate given: measure takes it; the fitted window stays 4 s (IV_FIT_S), or is given in frames
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FPS=50")
     assert _stages(calls) == sorted(ALL), calls
-    assert _arg(calls, "measure", "--fps") == "50" and _arg(calls, "fit", "--frames") == "200"
-    assert _arg(run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FIT_S=6"), "fit", "--frames") == "150"
+    assert _arg(calls, "measure", "--fps") == "50" and _arg(calls, "fit", "--duration") == "4"
+    calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FPS=50", "IV_FIT_S=6")
+    assert _stages(calls) == sorted(AFTER_MEASURE) and _arg(calls, "fit", "--duration") == "6"
+    calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FPS=50", "IV_FIT_FRAMES=120")
+    assert _arg(calls, "fit", "--frames") == "120" and "--duration" not in next(c for c in calls if c[0] == "fit")
     # the rig's geometry: the rig and everything after it
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400")
     assert _stages(calls) == sorted(ALL), calls
@@ -116,6 +121,15 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     os.utime(rig, (rig.stat().st_atime, rig.stat().st_mtime + 10))
     assert _stages(run(f"INVIVO={heart_b}", "HOLDOUT=0.2", f"IV_RIG={rig}")) == sorted(ALL[1:])
     assert rig.read_text() == "stub rig\n"
+
+
+def test_demo_invivo_on_the_shared_recording_takes_its_25_fps(make_stub):
+    """The shared recording has no timestamps; its README gives 25 fps, which the Makefile passes (dry run)."""
+    shared = ROOT.parent / "shared" / "data" / "hamlyn_invivo_heart"
+    res = subprocess.run(["make", "-n", "-C", str(ROOT / "sample_sequences"), "demo-invivo", "PY=python",
+                          f"WORK={make_stub[1] / 'work'}", f"INVIVO={shared}/"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert " --fps 25 " in res.stdout and "--duration 4" in res.stdout, res.stdout[-3000:]
 
 
 def test_demo_reruns_what_a_changed_setting_affects(make_stub):

@@ -8,7 +8,7 @@ import numpy as np
 
 from .files import InputError
 
-__all__ = ["MeasurementSet", "EstimateSet"]
+__all__ = ["MeasurementSet", "EstimateSet", "frames_within"]
 
 
 def _ro(a, dtype=float):
@@ -243,3 +243,13 @@ class EstimateSet:
         d2 = np.sum(e**2, axis=-1)
         d2 = d2[np.isfinite(d2)]
         return float(np.sqrt(d2.mean())) if d2.size else float("nan")
+
+
+def frames_within(times, duration_s: float) -> int:
+    """How many frames lie within the first ``duration_s`` seconds of ``times`` (s, increasing): those with
+    ``t - t_0 < duration_s`` (a frame a rounding error short of ``duration_s`` counts as at it, so 4 s at exactly
+    25 fps is 100 frames)."""
+    t = np.asarray(times, float)
+    if t.size == 0:
+        return 0
+    return int(np.count_nonzero(t - t[0] < duration_s - 1e-9 * max(abs(duration_s), 1.0)))

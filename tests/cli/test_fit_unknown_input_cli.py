@@ -647,3 +647,36 @@ def test_bad_rigid_motion_keys_in_a_parameters_file_exit_2(tmp_path, blind_file)
                                     "-o", str(tmp_path / "old.npz")])
     assert res.exit_code == 0, res.output
     assert read_estimates(str(tmp_path / "old.npz")).meta["field_degree"] == 0
+
+
+def test_frames_within_a_duration():
+    from heartcv.tracker.measurements import frames_within
+
+    t = np.arange(300) / 25.0 + 7.0                       # any start; 4 s at 25 fps is 100 frames
+    assert frames_within(t, 4.0) == 100 and frames_within(t, 4.02) == 101 and frames_within(t, 3.98) == 100
+    assert frames_within(t, 0.01) == 1 and frames_within(t, 1e6) == 300 and frames_within(t[:0], 4.0) == 0
+    jitter = t + np.random.default_rng(0).uniform(-0.004, 0.004, t.size)
+    assert frames_within(jitter, 4.0) == int(np.count_nonzero(jitter - jitter[0] < 4.0))
+
+
+def test_fit_duration_is_the_frames_of_those_seconds(tmp_path, blind_file):
+    """fit --duration S fits the frames of the first S seconds: the same parameters file as --frames with that
+    count (the frames are counted from the file's times); with --frames too, or too short, exit 2."""
+    m = read_measurements(blind_file)
+    n = int(np.count_nonzero(m.times - m.times[0] < 3.0 - 1e-9))
+    a, b = str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", a, "--duration", "3", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["frames"] == n
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", b, "--frames", str(n)])
+    assert res.exit_code == 0, res.output
+    pa, pb = read_parameters(a), read_parameters(b)
+    assert pa.estimated_input["fit_frames"] == pb.estimated_input["fit_frames"] == n
+    np.testing.assert_array_equal(pa.theta, pb.theta)
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "c.yaml"),
+                                    "--duration", "3", "--frames", "90"])
+    assert res.exit_code == 2 and "--frames and --duration" in res.output
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "c.yaml"),
+                                    "--duration", "0.001"])
+    assert res.exit_code == 2 and "--duration 0.001" in res.output and "at least 2" in res.output
+    assert not (tmp_path / "c.yaml").exists()
