@@ -90,8 +90,9 @@ MAX_WORKERS = 1024
               help="Track on the high-pass image (gray minus its Gaussian blur of this sigma, px); 0 = raw gray.")
 @click.option("--size-factor", default="auto", show_default=True, metavar="auto|K",
               help="Multiply every pixel size and threshold of the tracking (corner distance and block, window, NCC "
-                   "patch, high-pass, forward-backward, reprojection) by K; auto: 1 for sharp video, the effective "
-                   "blur of the first frames' texture in px where it exceeds 1 px (blurry or oversampled video).")
+                   "patch, high-pass, forward-backward, reprojection) by K; auto: sharp video (its first frames' "
+                   "texture blur at most 1 px) as it is; blurrier or oversampled video is tracked on frames reduced "
+                   "until their texture reads 1 px (positions reported in the full frames' pixels).")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False), default=None,
               help="Render truth (truth.npz of `heartcv render sequence`): report the 3-D error of every point.")
 @click.option("--csv", "csv_file", type=click.Path(dir_okay=False), default=None,
@@ -167,7 +168,8 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     wall = time.perf_counter() - t_start
     res = run.result
     mset = _measurement_set(res, times, (in_names, in_units, in_values), be.name, source, count, ref,
-                            highpass * (sizing or {}).get("size_factor", 1.0), rig_file, inputs_path)
+                            highpass * (sizing or {}).get("size_factor", 1.0) * (sizing or {}).get("reduction", 1.0),
+                            rig_file, inputs_path)
     if csv_file:
         _write_csv(csv_file, mset, res.uv, names)
     write_measurements(output, mset)
@@ -342,11 +344,19 @@ def _dense_options(ref, pixel_sigma):
 # -- the stage -----------------------------------------------------------------------------------------------------
 def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=False, sizing=None):
     """:func:`heartcv.measure.measure_sequence` (or :func:`heartcv.dense.dense_sequence`) over the reader, with a
-    progress bar; its problems as warnings. ``sizing["size_factor"]`` None (sparse mode): chosen here from the
-    reference camera's first frames (:func:`heartcv.measure.auto_size_factor`), and their blur recorded."""
+    progress bar; its problems as warnings. ``sizing["size_factor"]`` None (sparse mode, ``--size-factor auto``):
+    the size factor is 1 and the frames' reduction is chosen here from the reference camera's first frames
+    (:func:`heartcv.measure.auto_reduction`), their blur recorded."""
     from dataclasses import replace
 
-    from heartcv.measure import MeasureFailed, auto_region, auto_size_factor, measure_sequence, reference_frames
+    from heartcv.measure import (
+        MeasureFailed,
+        auto_reduction,
+        auto_region,
+        measure_sequence,
+        reduced_size,
+        reference_frames,
+    )
     from heartcv.tracker.files import InputError
 
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
@@ -381,14 +391,19 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 if not first:
                     raise InputError(None, "none of the reference camera's first frames can be read (needed by "
                                            "--size-factor auto)", "images")
-                sizing["size_factor"], blur = auto_size_factor(first, roi)
-                sizing["texture_blur_px"] = blur if math.isfinite(blur) else None     # None: a flat image
-                if sizing["size_factor"] > 1.0:
-                    log.info("texture blur %.2f px (camera %s): pixel sizes and thresholds x%.2f (--size-factor)",
-                             sizing["texture_blur_px"], ref_cam.name, sizing["size_factor"])
+                reduction, blur, reduced_blur = auto_reduction(first, roi)
+                sizing.update(size_factor=1.0, reduction=reduction,
+                              texture_blur_px=blur if math.isfinite(blur) else None)     # None: a flat image
+                if reduction > 1.0:
+                    sizing["texture_blur_reduced_px"] = reduced_blur
+                    w, h = reduced_size(ref_cam.width, ref_cam.height, reduction)
+                    log.info("texture blur %.2f px (camera %s): tracking on frames reduced %.2fx (%dx%d px, blur "
+                             "%.2f px; --size-factor auto); positions in the full frames' pixels",
+                             blur, ref_cam.name, reduction, w, h, reduced_blur)
             opts = replace(opts, size_factor=sizing["size_factor"])
             with progress(reader, "measuring", count, verbosity) as frames:
-                run = measure_sequence(frames, rig.cameras, opts, roi=roi, backend=backend)
+                run = measure_sequence(frames, rig.cameras, opts, roi=roi, backend=backend,
+                                       reduction=sizing.get("reduction", 1.0))
     except InputError as exc:
         raise (exc if exc.path is not None else exc.in_file(sequence)) from None
     except MeasureFailed as exc:   # the images or the rig's cameras: name both

@@ -41,6 +41,7 @@ import time
 import numpy as np
 
 from .backend import OpenCVBackend
+from .camera import Camera
 from .features import detect_corners, moving_mask, saturation_mask
 from .klt import (
     ACCEPTED,
@@ -60,7 +61,9 @@ from .tissue import TissueNotFound, neutral_mask, noise_sigma, specular_mask, ti
 from .tracker.files import InputError
 from .triangulation import triangulate
 
-__all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_factor", "MeasureResult", "Highlights",
+__all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_factor",
+           "MIN_REDUCED_SIDE_PX", "REDUCTION_STEP", "auto_reduction", "reduced_size", "reduce_image", "reduce_mask",
+           "reduced_camera", "MeasureResult", "Highlights",
            "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
            "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
            "assemble_result"]
@@ -172,8 +175,9 @@ SHARP_BLUR_PX = 1.0
 """The blurriest texture the sparse tracker's pixel sizes are meant for, as :func:`texture_blur_px` reads it (a
 Gaussian blur of about 1.1 px). Measured in the automatic region of the first frames: the in-vivo heart (360 x
 288) 0.80, the rendered phantoms (1920 x 1080) 0.89 and 0.91; the Hamlyn silicone phantom 0.55 over its image.
-All are sharper and keep the sizes as they are (every default was chosen on them); blurrier video gets the sizes
-scaled (:func:`auto_size_factor`): the in-vivo frames upsampled 2x read 1.45 in their automatic region."""
+All are sharper and are tracked as they are (every default was chosen on them); blurrier video is tracked on
+frames reduced until they read this sharp (:func:`auto_reduction`): the in-vivo frames upsampled 2x read 1.45 in
+their automatic region, and 0.95 reduced 2.12x."""
 
 
 def texture_blur_px(gray, mask=None) -> float:
@@ -200,9 +204,79 @@ def texture_blur_px(gray, mask=None) -> float:
 
 def auto_size_factor(frames, mask=None) -> tuple[float, float]:
     """``(size_factor, blur)``: the median :func:`texture_blur_px` of ``frames`` (the reference camera's first
-    frames) over ``mask``, and ``max(1, blur / SHARP_BLUR_PX)`` (1 where the blur is not finite: a flat image)."""
-    blur = float(np.median([texture_blur_px(f, mask) for f in frames])) if len(frames) else math.nan
+    frames) over ``mask``, and ``max(1, blur / SHARP_BLUR_PX)`` (1 where the blur is not finite: a flat image).
+    ``measure --size-factor auto`` reduces the frames instead (:func:`auto_reduction`); this is the factor by which
+    sizes would have to grow, kept for comparison."""
+    blur = _median_blur(frames, mask)
     return (max(1.0, blur / SHARP_BLUR_PX) if math.isfinite(blur) else 1.0), blur
+
+
+#: The smallest side (px) that :func:`auto_reduction` leaves an image (the in-vivo heart at half resolution, 180 x
+#: 144 px, still gives 530 tracks; docs/cli.md §10.3).
+MIN_REDUCED_SIDE_PX = 144
+#: The step between the reductions :func:`auto_reduction` tries (each 10 % more than the last).
+REDUCTION_STEP = 1.1
+
+
+def _median_blur(frames, mask=None) -> float:
+    return float(np.median([texture_blur_px(f, mask) for f in frames])) if len(frames) else math.nan
+
+
+def reduced_size(width: int, height: int, factor: float) -> tuple[int, int]:
+    """The size ``(width, height)`` of an image reduced by ``factor`` (>= 1), each side rounded, at least 1."""
+    return max(1, int(round(width / factor))), max(1, int(round(height / factor)))
+
+
+def reduce_image(image, factor: float):
+    """``image`` (H, W) or (H, W, 3) reduced by ``factor`` by area averaging (``cv2.INTER_AREA``; the image itself
+    when the factor is 1)."""
+    import cv2
+
+    if factor == 1.0:
+        return image
+    h, w = image.shape[:2]
+    return cv2.resize(image, reduced_size(w, h, factor), interpolation=cv2.INTER_AREA)
+
+
+def reduce_mask(mask, factor: float) -> np.ndarray:
+    """A boolean mask (H, W) reduced by ``factor``: a reduced pixel is in it when at least half its area is."""
+    if factor == 1.0:
+        return np.asarray(mask, bool)
+    return reduce_image(np.asarray(mask, np.float32), factor) >= 0.5
+
+
+def reduced_camera(camera: Camera, factor: float) -> Camera:
+    """``camera`` as it sees images reduced by ``factor`` (:func:`reduce_image`): a pixel ``u`` of the full image
+    is ``(u + 0.5) s - 0.5`` of the reduced one, with ``s`` the ratio of the reduced side to the full side per
+    axis (pixel centres at integers); the distortion (of normalised coordinates) and the pose are unchanged."""
+    w, h = reduced_size(camera.width, camera.height, factor)
+    sx, sy = w / camera.width, h / camera.height
+    K = np.array(camera.K, float)
+    S = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+    return replace(camera, width=w, height=h, K=S @ K)
+
+
+def auto_reduction(frames, mask=None) -> tuple[float, float, float]:
+    """``(factor, blur, reduced_blur)``: how much to reduce blurry or oversampled frames so that their texture is
+    as sharp as the sparse tracker's sizes expect (docs/cli.md §10.3). ``blur`` is the median
+    :func:`texture_blur_px` of ``frames`` (the reference camera's first frames) over ``mask``; at most
+    :data:`SHARP_BLUR_PX` (or not finite: a flat image) the factor is 1. Otherwise the factors ``blur /
+    SHARP_BLUR_PX``, then each :data:`REDUCTION_STEP` times the last, are tried on the frames reduced by area
+    averaging, and the first whose reduced frames read at most :data:`SHARP_BLUR_PX` is taken, but none that
+    leaves a side under :data:`MIN_REDUCED_SIDE_PX` (or the image's own smaller side, if smaller);
+    ``reduced_blur`` is what the frames read at the factor taken."""
+    blur = _median_blur(frames, mask)
+    if not (math.isfinite(blur) and blur > SHARP_BLUR_PX):
+        return 1.0, blur, blur
+    h, w = np.asarray(frames[0]).shape[:2]
+    cap = max(1.0, min(h, w) / MIN_REDUCED_SIDE_PX)
+    factor = min(blur / SHARP_BLUR_PX, cap)
+    while True:
+        small = [reduce_image(np.asarray(f), factor) for f in frames]
+        reduced = _median_blur(small, None if mask is None else reduce_mask(mask, factor))
+        if not reduced > SHARP_BLUR_PX or factor >= cap:
+            return factor, blur, reduced
+        factor = min(factor * REDUCTION_STEP, cap)
 
 
 #: The gates that remove candidates (``Measurer.rejected``; docs/cli.md, measure): per view and frame for the
@@ -851,8 +925,24 @@ def auto_region(roi_frames, options: MeasureOptions = MeasureOptions()) -> np.nd
     return mask
 
 
+def _pixel_scale(full, reduced, ref: int) -> float:
+    """Full pixels per reduced pixel of the reference camera (the geometric mean of its two axes)."""
+    return math.sqrt(full[ref].width * full[ref].height / (reduced[ref].width * reduced[ref].height))
+
+
+def _full_size(res: MeasureResult, full, reduced, ref: int, roi) -> MeasureResult:
+    """A result measured on reduced images (:func:`measure_sequence` ``reduction``) in the full images' pixels."""
+    uv = np.array(res.uv, np.float64)
+    for c, (a, b) in enumerate(zip(full, reduced)):
+        s = np.array([b.width / a.width, b.height / a.height])
+        uv[:, :, c] = (uv[:, :, c] + 0.5) / s - 0.5
+    scale = _pixel_scale(full, reduced, ref)
+    return replace(res, uv=uv.astype(res.uv.dtype), reprojection_rms=res.reprojection_rms * scale,
+                   sigma_px=res.sigma_px * scale, roi=np.asarray(roi, bool).copy())
+
+
 def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions(), *, roi=None, roi_frames=(),
-                     backend=None, clock=time.perf_counter) -> SequenceRun:
+                     backend=None, clock=time.perf_counter, reduction: float = 1.0) -> SequenceRun:
     """Measure a whole sequence: set up a :class:`Measurer` and feed it every instant of ``frames``.
 
     Parameters
@@ -870,6 +960,13 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
     backend : image-ops backend (heartcv.backend), default OpenCV.
     clock : callable
         Time source of the per-instant timings.
+    reduction : float
+        At least 1 (:func:`auto_reduction`): the points are tracked and triangulated in every camera's images
+        reduced by this factor (:func:`reduce_image`, :func:`reduced_camera`; the sizes of ``options`` follow the
+        reduced images; a given ``options.pixel_sigma`` is in the full images' pixels), and the result is given
+        in the full images' pixels: ``uv``, ``reprojection_rms`` and ``sigma_px`` mapped back (the latter two times
+        the reference camera's factor), ``roi`` the full-size region. Positions and covariances are in metres
+        either way.
 
     Raises
     ------
@@ -878,11 +975,24 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
     MeasureFailed
         No textured surface for the region of interest, or no point tracked in any instant.
     """
+    if not (math.isfinite(reduction) and reduction >= 1.0):
+        raise ValueError(f"reduction: a factor >= 1 expected, got {reduction}")
     t0 = clock()
     if roi is None:
         roi = auto_region(roi_frames, options)
+    full_cameras, full_roi = list(cameras), np.asarray(roi, bool)
+    if reduction > 1.0:
+        cameras = [reduced_camera(c, reduction) for c in full_cameras]
+        roi = reduce_mask(full_roi, reduction)
+        if options.pixel_sigma is not None:            # given in the full frames' pixels
+            options = replace(options, pixel_sigma=options.pixel_sigma / _pixel_scale(full_cameras, cameras,
+                                                                                         options.ref_camera))
+        frames = ((k, [None if im is None else reduce_image(im, reduction) for im in images], problems)
+                  for k, images, problems in frames)
     measurer = Measurer(cameras, options, roi=roi, backend=backend)
     run = run_frames(measurer, frames, clock, clock() - t0)
+    if reduction > 1.0:
+        run = replace(run, result=_full_size(run.result, full_cameras, cameras, options.ref_camera, full_roi))
     if run.result.point_ids.size == 0 or not run.result.seen.any():
         raise MeasureFailed(f"no surface point could be tracked (region of interest {int(run.result.roi.sum())} px "
                             f"in camera {measurer.cameras[options.ref_camera].name}): "

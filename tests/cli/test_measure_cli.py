@@ -256,13 +256,15 @@ def test_no_such_sequence_exit_2(case):
 
 
 def test_size_factor_auto_reports_the_blur_and_a_given_factor_scales_the_prefilter(case):
-    """--size-factor auto (the default) reports the texture blur it chose from and the factor max(1, blur / 1 px);
-    a given factor is reported as such, scales the high-pass recorded in the file's meta (3 px x 2), and needs no
-    blur; a value that is neither 'auto' nor a number in (0, 100] is exit 2 with nothing written."""
+    """--size-factor auto (the default) reports the texture blur it chose from, the size factor 1 and no reduction
+    of these sharp frames (blur <= 1 px); a given factor is reported as such, scales the high-pass recorded in the
+    file's meta (3 px x 2), and needs no blur; a value that is neither 'auto' nor a number in (0, 100] is exit 2
+    with nothing written."""
     from heartcv.tracker.io import read_measurements
 
     s = json.loads(_measure(case, "--json").stdout)
-    assert np.isfinite(s["texture_blur_px"]) and s["size_factor"] == max(1.0, s["texture_blur_px"])
+    assert 0 < s["texture_blur_px"] <= 1.0 and s["size_factor"] == 1.0 and s["reduction"] == 1.0
+    assert "texture_blur_reduced_px" not in s
     res = _measure(case, "--json", "--size-factor", "2")
     assert res.exit_code == 0, res.output
     s = json.loads(res.stdout)
@@ -273,3 +275,59 @@ def test_size_factor_auto_reports_the_blur_and_a_given_factor_scales_the_prefilt
             p.unlink()
         _assert_failed_cleanly(_measure(case, "--size-factor", bad), "--size-factor", repr(bad))
         _assert_no_output(case)
+
+
+def test_oversampled_frames_are_measured_reduced_and_reported_in_their_own_pixels(case, tmp_path):
+    """The sequence upsampled 2x (bicubic, 960 x 540; its rig's cameras scaled to match, the inverse of
+    heartcv.measure.reduced_camera) reads blurrier than 1 px: --size-factor auto tracks it on frames reduced until
+    they read sharp (reported: a reduction between 1.5 and 2.5, the reduced blur <= 1 px, size factor 1), and its
+    tracks are as long and as accurate as the native frames' (truth RMS within 1.5x, seen-median frames within 1). Its
+    2-D positions are in the upsampled frames' pixels: each point's first position (meta reference_uv) is where
+    the upsampled camera projects its first 3-D position (within 3 px of 960; the native camera's pixels would be
+    half of that) and lies inside 960 x 540. A --pixel-sigma is taken and reported in those pixels too."""
+    import cv2
+
+    from heartcv.evaluate import truth_errors
+    from heartcv.io import read_render_truth, read_rig, write_rig
+    from heartcv.measure import reduced_camera
+    from heartcv.measure_data import truth_for_frames
+    from heartcv.tracker.io import read_measurements
+
+    native = json.loads(_measure(case, "--json", "--truth", case["truth"]).stdout)
+    up = tmp_path / "up"
+    for cam in ("cam0", "cam1", "cam2"):
+        (up / cam).mkdir(parents=True)
+        for f in sorted((case["seq"] / cam).iterdir()):
+            im = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(up / cam / f.name), cv2.resize(im, (2 * im.shape[1], 2 * im.shape[0]),
+                                                            interpolation=cv2.INTER_CUBIC))
+    for name in ("timestamps.csv", "inputs.csv"):
+        shutil.copy(case["seq"] / name, up / name)
+    rig = read_rig(case["rig"])
+    big = type(rig)([reduced_camera(c, 0.5) for c in rig.cameras])
+    write_rig(tmp_path / "rig_up.yaml", big)
+    out = tmp_path / "up_meas.npz"
+    res = _measure(case, "--json", seq=up, rig=tmp_path / "rig_up.yaml", out=out)
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["texture_blur_px"] > 1.0 and 1.5 < s["reduction"] < 2.5 and s["texture_blur_reduced_px"] <= 1.0
+    assert s["size_factor"] == 1.0
+    assert s["track_seen_median_frames"] >= native["track_seen_median_frames"] - 1
+    m = read_measurements(out)
+    uv0 = np.array(m.meta["reference_uv"], float)
+    assert ((uv0 >= 0) & (uv0 < [960, 540])).all()
+    born = np.asarray(m.meta["reference_frame_index"])
+    X0 = m.positions[born, np.arange(m.n_points)]
+    proj = big.cameras[0].project(X0)
+    assert np.nanmedian(np.linalg.norm(proj - uv0, axis=1)) < 3.0
+    # the truth is the native frames': look each track up at its native pixel
+    arrays, meta = read_render_truth(case["truth"])
+    truth = truth_for_frames(arrays, meta, FRAMES, ["cam0", "cam1", "cam2"])
+    te = truth_errors(m.positions, (uv0 + 0.5) / 2 - 0.5, born, truth, ref_camera=0)
+    assert te.rms_m < 1.5 * native["error_rms_m"]
+    # a given pixel noise is in the frames' own pixels, and reported so
+    out.unlink()
+    res = _measure(case, "--json", "--pixel-sigma", "0.7", seq=up, rig=tmp_path / "rig_up.yaml", out=out)
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["sigma_px"] == pytest.approx(0.7)
+    assert read_measurements(out).meta["sigma_px"] == pytest.approx(0.7)

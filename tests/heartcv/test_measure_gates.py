@@ -168,3 +168,80 @@ def test_texture_blur_is_the_blur_sigma_of_white_noise_and_doubles_with_upsampli
     assert k == pytest.approx(blur / SHARP_BLUR_PX) and k > 2.0
     assert auto_size_factor([cv2.GaussianBlur(noise, (0, 0), 0.7)])[0] == 1.0
     assert auto_size_factor([np.full((50, 60), 9, np.uint8)]) == (1.0, pytest.approx(np.nan, nan_ok=True))
+
+
+def test_reduced_camera_sees_what_the_reduced_image_shows():
+    """A camera reduced by f projects every point where the full camera's projection lands in the image reduced
+    by area averaging: ``(u + 0.5) s - 0.5`` with s the ratio of the sides (closed form, with distortion and a
+    skew, to 1e-9 px); f = 1 changes nothing. The reduction of an image and of a mask follow the same sizes, and
+    a bright dot moves where that map sends it (to 0.05 px, by its centroid in the reduced image)."""
+    import cv2
+
+    from heartcv.measure import reduce_image, reduce_mask, reduced_camera, reduced_size
+
+    K = np.array([[812.0, 0.7, 401.3], [0.0, 805.0, 297.9], [0.0, 0.0, 1.0]])
+    cam = Camera("c", 800, 600, K, np.array([-0.21, 0.07, 1e-3, -2e-3, 0.01]),
+                 np.array([[1, 0, 0, 0.01], [0, 1, 0, -0.02], [0, 0, 1, 0.05], [0, 0, 0, 1.0]]))
+    rng = np.random.default_rng(3)
+    X = np.column_stack([rng.uniform(-0.02, 0.02, (50, 2)), rng.uniform(0.05, 0.1, 50)])
+    uv = cam.project(X)
+    for f in (1.0, 1.5, 2.0, 2.37):
+        small = reduced_camera(cam, f)
+        w, h = reduced_size(800, 600, f)
+        assert (small.width, small.height) == (w, h)
+        s = np.array([w / 800, h / 600])
+        np.testing.assert_allclose(small.project(X), (uv + 0.5) * s - 0.5, atol=1e-9)
+        np.testing.assert_array_equal(small.dist, cam.dist)
+        np.testing.assert_array_equal(small.cam_from_rig, cam.cam_from_rig)
+    same = reduced_camera(cam, 1.0)
+    assert same.size == cam.size and np.array_equal(same.K, cam.K)
+    img = np.zeros((600, 800), np.float32)
+    cv2.circle(img, (400, 300), 12, 255.0, -1)
+    for f in (2.0, 2.5):
+        small = reduce_image(img, f)
+        assert small.shape == reduced_size(800, 600, f)[::-1]
+        yy, xx = np.mgrid[:small.shape[0], :small.shape[1]]
+        centroid = np.array([(xx * small).sum(), (yy * small).sum()]) / small.sum()
+        yy, xx = np.mgrid[:600, :800]
+        full = np.array([(xx * img).sum(), (yy * img).sum()]) / img.sum()
+        s = np.array([small.shape[1] / 800, small.shape[0] / 600])
+        np.testing.assert_allclose(centroid, (full + 0.5) * s - 0.5, atol=0.05)
+        m = reduce_mask(img > 0, f)
+        assert m.shape == small.shape and m.dtype == bool and 0.8 < m.sum() * f * f / (img > 0).sum() < 1.2
+
+
+def test_auto_reduction_reduces_blurry_frames_until_they_read_sharp():
+    """Sharp frames (blur <= SHARP_BLUR_PX) and a flat image keep factor 1. Blurry frames (white noise blurred by
+    sigma = 3 and 5 px) get the smallest factor of the sequence blur, blur x 1.1, ... at which the frames reduced by
+    area averaging read at most SHARP_BLUR_PX (brute force: the factor before it reads more), and the factor is
+    about sigma (a reduction by f divides a Gaussian blur by f; the reduced pixels' area adds a little). A small
+    image stops at MIN_REDUCED_SIDE_PX."""
+    import cv2
+
+    from heartcv.measure import (
+        MIN_REDUCED_SIDE_PX,
+        REDUCTION_STEP,
+        SHARP_BLUR_PX,
+        auto_reduction,
+        reduce_image,
+        texture_blur_px,
+    )
+
+    rng = np.random.default_rng(11)
+    noise = rng.standard_normal((1200, 1600)) * 30 + 128
+    sharp = cv2.GaussianBlur(noise, (0, 0), 0.7)
+    f, blur, reduced = auto_reduction([sharp, sharp])
+    assert f == 1.0 and blur == reduced and blur <= SHARP_BLUR_PX
+    f, blur, reduced = auto_reduction([np.full((50, 60), 9, np.uint8)])
+    assert f == 1.0 and np.isnan(blur)
+    for sigma in (3.0, 5.0):
+        img = cv2.GaussianBlur(noise, (0, 0), sigma)
+        f, blur, reduced = auto_reduction([img])
+        assert blur == pytest.approx(sigma, rel=0.05)
+        assert reduced == pytest.approx(texture_blur_px(reduce_image(img, f))) and reduced <= SHARP_BLUR_PX
+        if f > blur / SHARP_BLUR_PX + 1e-12:
+            assert texture_blur_px(reduce_image(img, f / REDUCTION_STEP)) > SHARP_BLUR_PX
+        assert sigma * 0.8 < f < sigma * 1.1     # a Gaussian blur over f, plus the reduced pixels' own area
+    small = cv2.GaussianBlur(rng.standard_normal((160, 200)) * 30 + 128, (0, 0), 4.0)
+    f, blur, reduced = auto_reduction([small])
+    assert f == pytest.approx(160 / MIN_REDUCED_SIDE_PX) and reduced > SHARP_BLUR_PX

@@ -324,8 +324,9 @@ def test_tissue_region_input_checks():
 def test_real_heart_keeps_the_tracking_sizes_and_its_upsampled_frames_scale_them():
     """The in-vivo heart's first frames (the automatic region of interest) read sharper than SHARP_BLUR_PX: the
     automatic size factor is 1 (measure's defaults unchanged on it). The same frames upsampled 2x (bicubic, as a
-    stand-in for oversampled video) read 1.5-2x blurrier: their factor is above 1.3."""
-    from heartcv.measure import ROI_FRAMES, MeasureOptions, auto_region, auto_size_factor
+    stand-in for oversampled video) read 1.5-2x blurrier: their factor is above 1.3, and measure's automatic
+    reduction brings them back to about the native size (a factor of 1.6-2.4, reading at most 1 px)."""
+    from heartcv.measure import ROI_FRAMES, SHARP_BLUR_PX, MeasureOptions, auto_reduction, auto_region, auto_size_factor
 
     frames = [cv2.imread(str(INVIVO / f"{k:06d}.png")) for k in ROI_FRAMES]
     roi = auto_region(frames, MeasureOptions())
@@ -335,3 +336,6 @@ def test_real_heart_keeps_the_tracking_sizes_and_its_upsampled_frames_scale_them
     roi_up = cv2.resize(roi.astype(np.uint8), (720, 576), interpolation=cv2.INTER_NEAREST).astype(bool)
     k_up, blur_up = auto_size_factor(up, roi_up)
     assert k_up > 1.3 and 1.5 < blur_up / blur < 2.1
+    assert auto_reduction(frames, roi) == (1.0, blur, blur)
+    f, blur_r, reduced = auto_reduction(up, roi_up)
+    assert blur_r == blur_up and 1.6 < f < 2.4 and reduced <= SHARP_BLUR_PX
