@@ -272,8 +272,8 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     except NoHeartbeat as exc:
         raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written") from None
     log.info("heart rate %.4g ± %.2g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's "
-             "median and %.2gx its surroundings", hr.frequency_hz, hr.std_hz, 60 * hr.frequency_hz, hr.beats,
-             hr.peak_ratio, hr.prominence)
+             "median, %.0fx the power between its harmonics and %.2gx its surroundings", hr.frequency_hz, hr.std_hz,
+             60 * hr.frequency_hz, hr.beats, hr.peak_ratio, hr.background_ratio, hr.prominence)
     if hr.prominence < PEAK_PROMINENCE:
         log.warning("the tracks' spectral peak at %.3g Hz stands only %.2gx above their spectrum at half and one and "
                     "a half times that frequency (a heartbeat: %gx and more): it may be drift, not a heartbeat; "
@@ -321,6 +321,8 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                              "peak_hz": hr.peak_hz,
                              "peak_ratio": hr.peak_ratio,
                              "peak_prominence": hr.prominence if math.isfinite(hr.prominence) else None,
+                             "peak_background_ratio": hr.background_ratio if math.isfinite(hr.background_ratio)
+                             else None,
                              "beats": hr.beats, "points": hr.points},
                  respiration=resp.to_dict(),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],

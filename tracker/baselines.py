@@ -24,7 +24,7 @@ import numpy as np
 
 from .estimator_names import BASELINES
 from .measurements import EstimateSet, MeasurementSet
-from .unknown_input import PEAK_RATIO, filled_tracks, spectral_peak
+from .unknown_input import filled_tracks, periodic_peak, spectral_peak
 
 __all__ = ["BASELINES", "PERIODS", "dominant_frequency", "predict_hold", "predict_constvel",
            "predict_harmonic", "run_baseline"]
@@ -37,8 +37,9 @@ def dominant_frequency(times, positions, lo_hz: float = 0.5, hi_hz: float = 4.0)
     """The dominant frequency (Hz) of the points' motion: the largest peak in ``[lo_hz, hi_hz]`` of the summed power
     spectrum of every point's detrended coordinates (points seen in at least 90 % of the frames, gaps filled by
     linear interpolation), refined by parabolic interpolation of the log power around the peak bin; NaN when no
-    point qualifies, the sequence is shorter than two periods of ``hi_hz`` or the peak is less than
-    :data:`PEAK_RATIO` times the band's median power (no periodic motion).
+    point qualifies, the sequence is shorter than two periods of ``hi_hz`` or the peak is not periodic motion
+    (:func:`tracker.unknown_input.periodic_peak`: ``PEAK_RATIO`` times the band's median power, or that many
+    times the power between its harmonics and prominent).
 
     Parameters
     ----------
@@ -57,7 +58,7 @@ def dominant_frequency(times, positions, lo_hz: float = 0.5, hi_hz: float = 4.0)
         return float("nan")
     Y, _ = filled_tracks(t, y)
     peak, ratio, _ = spectral_peak(Y, dt, (lo_hz, hi_hz))
-    if peak is None or not ratio >= PEAK_RATIO:        # no periodic motion: a flat spectrum
+    if peak is None or not periodic_peak(Y, dt, peak, ratio)[0]:        # no periodic motion: a flat spectrum
         return float("nan")
     return peak
 
