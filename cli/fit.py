@@ -261,6 +261,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
         Respiration,
         estimate_heart_rate,
         estimate_respiration,
+        harmonics_below_nyquist,
         input_block_from_fit,
     )
 
@@ -274,6 +275,13 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     log.info("heart rate %.4g ± %.2g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's "
              "median, %.0fx the power between its harmonics and %.2gx its surroundings", hr.frequency_hz, hr.std_hz,
              60 * hr.frequency_hz, hr.beats, hr.peak_ratio, hr.background_ratio, hr.prominence)
+    dt = float(np.median(np.diff(meas.times[:K])))
+    resolved = harmonics_below_nyquist(hr.frequency_hz, dt, H, hr.std_hz)
+    if resolved < H:
+        log.warning("%d harmonics of the heart rate %.3g Hz (+ 2 standard errors) reach the Nyquist frequency %.3g Hz "
+                    "of %.3g frames per second: %d harmonics used", H, hr.frequency_hz, 0.5 / dt, 1.0 / dt, resolved)
+        H = resolved
+        rigid_harmonics = None if rigid_harmonics is None else min(rigid_harmonics, H)
     if hr.prominence < PEAK_PROMINENCE:
         log.warning("the tracks' spectral peak at %.3g Hz stands only %.2gx above their spectrum at half and one and "
                     "a half times that frequency (a heartbeat: %gx and more): it may be drift, not a heartbeat; "

@@ -35,7 +35,7 @@ import numpy as np
 
 __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
            "DRIFT_PER_SQRT_S", "PEAK_RATIO", "PEAK_PROMINENCE", "BAND_HZ", "filled_tracks", "spectral_peak",
-           "harmonic_background_ratio", "periodic_peak",
+           "harmonic_background_ratio", "periodic_peak", "harmonics_below_nyquist",
            "peak_prominence",
            "fit_harmonics", "input_block_from_fit", "extend_observation",
            "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs", "RatePrior",
@@ -183,6 +183,15 @@ def harmonic_background_ratio(Y, dt: float, peak_hz: float) -> float:
         return float("nan")
     background = float(np.median(np.interp(between, f, power)))
     return float(np.interp(peak_hz, f, power) / background) if background > 0 else float("nan")
+
+
+def harmonics_below_nyquist(frequency_hz: float, dt: float, harmonics: int, std_hz: float = 0.0) -> int:
+    """The harmonics of a rate ``frequency_hz`` (standard error ``std_hz``) that a recording of frame interval ``dt``
+    resolves: the largest h <= ``harmonics`` with h (``frequency_hz`` + 2 ``std_hz``) below the Nyquist frequency
+    1 / (2 dt), at least 1 (a NaN ``std_hz`` counts as 0). A harmonic at or above it is an alias of a lower
+    frequency (at it, its sine vanishes on every frame)."""
+    f = frequency_hz + (2.0 * std_hz if math.isfinite(std_hz) else 0.0)
+    return max(1, min(int(harmonics), int(math.ceil(0.5 / (dt * f) - 1e-9)) - 1))
 
 
 def periodic_peak(Y, dt: float, peak_hz: float, ratio: float) -> tuple[bool, float, float]:

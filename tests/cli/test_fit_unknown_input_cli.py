@@ -680,3 +680,39 @@ def test_fit_duration_is_the_frames_of_those_seconds(tmp_path, blind_file):
                                     "--duration", "0.001"])
     assert res.exit_code == 2 and "--duration 0.001" in res.output and "at least 2" in res.output
     assert not (tmp_path / "c.yaml").exists()
+
+
+def test_harmonics_at_or_above_the_nyquist_frequency_are_left_out(tmp_path, blind_file):
+    """The recording at 60 bpm with every third frame kept (10 fps: the Nyquist frequency is 5 Hz): the 5th and 6th
+    harmonics of 1 Hz are aliases (the 5th's sine vanishes on every frame; the fitted rate, 0.999 Hz, is that within
+    its standard error), so fit warns and keeps 4 (8 amplitudes; the rigid motion's harmonics no more), and track
+    runs every step with them. The rule against brute force (the rate plus 2 standard errors below Nyquist)."""
+    from heartcv.tracker.unknown_input import harmonics_below_nyquist
+
+    for f in (0.5, 0.87, 1.0, 1.2, 2.2, 2.5, 3.9):
+        for dt in (1 / 10, 1 / 25, 1 / 30, 1 / 50):
+            for H in (1, 3, 6):
+                for sd in (0.0, 0.01, float("nan")):
+                    hi = f + (2 * sd if sd == sd else 0.0)
+                    brute = max([h for h in range(1, H + 1) if h * hi < 0.5 / dt - 1e-9], default=1)
+                    assert harmonics_below_nyquist(f, dt, H, sd) == brute, (f, dt, H, sd)
+    m = read_measurements(blind_file)
+    sub = np.arange(0, m.n_frames, 3)
+    slow = str(tmp_path / "slow.npz")
+    write_measurements(slow, dataclasses.replace(
+        m, times=m.times[sub], positions=m.positions[sub], covariances=m.covariances[sub], inputs=m.inputs[sub],
+        views=None if m.views is None else m.views[sub],
+        reprojection_rms=None if m.reprojection_rms is None else m.reprojection_rms[sub]))
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", slow, "--model", PAPER, "-o", params, "--frames", "30", "--json"])
+    assert res.exit_code == 0, res.output
+    assert "6 harmonics of the heart rate" in res.output and "4 harmonics used" in res.output, res.output
+    p = read_parameters(params)
+    assert p.estimated_input["harmonics"] == 4 and len(p.estimated_input["amplitudes_pa"]) == 8
+    assert p.estimated_input["rigid_harmonics"] <= 4
+    assert json.loads(res.stdout)["heart_rate_hz"] == pytest.approx(1.0, rel=0.02)
+    out = str(tmp_path / "kf.npz")
+    res = CliRunner().invoke(main, ["track", slow, "--model", PAPER, "--params", params, "--estimator", "kf",
+                                    "-o", out])
+    assert res.exit_code == 0, res.output
+    assert read_estimates(out).completed_steps == len(sub)

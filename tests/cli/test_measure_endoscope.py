@@ -327,7 +327,7 @@ def test_invivo_heart_played_twice_as_fast_is_not_refused(invivo_rig, tmp_path):
     band = (f >= 0.5) & (f <= 4.0)
     f_fft = f[band][np.argmax(power[band])]
     assert 1.5 < f_fft < 2.1 and abs(s["heart_rate_hz"] - f_fft) / f_fft < 0.03, (s["heart_rate_hz"], f_fft)
-    from heartcv.tracker.baselines import dominant_frequency     # the harmonic baseline's rate: the same test
+    from heartcv.tracker.baselines import dominant_frequency  # the harmonic baseline's rate: the same test
 
     assert abs(dominant_frequency(m.times[:100], pos) - f_fft) / f_fft < 0.03
 
