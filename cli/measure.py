@@ -93,6 +93,10 @@ MAX_WORKERS = 1024
                    "patch, high-pass, forward-backward, reprojection) by K; auto: sharp video (its first frames' "
                    "texture blur at most 1 px) as it is; blurrier or oversampled video is tracked on frames reduced "
                    "until their texture reads 1 px (positions reported in the full frames' pixels).")
+@click.option("--fields", type=click.Choice(["first", "second"]), default=None,
+              help="Interlaced video: measure one field of every frame (first: rows 0, 2, 4, ...; second: rows 1, 3, "
+                   "...), positions in the full frames' pixels. Without it measure warns when the first frames look "
+                   "interlaced.")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False), default=None,
               help="Render truth (truth.npz of `heartcv render sequence`): report the 3-D error of every point.")
 @click.option("--csv", "csv_file", type=click.Path(dir_okay=False), default=None,
@@ -103,7 +107,7 @@ MAX_WORKERS = 1024
 def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed, ref_camera, max_points, min_distance,
             corner_block, corner_quality, frames, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
             max_depth_std, max_reprojection, min_angle, max_gap, window, no_specular, overlay_dir, overlay_video,
-            backend, device, pixel_sigma, highpass, size_factor, truth_file, csv_file, workers, as_json):
+            backend, device, pixel_sigma, highpass, size_factor, fields, truth_file, csv_file, workers, as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
     name is the same instant; or, with --packed, one holding all the views) seen by the cameras of RIG, and write
     their positions and covariances per frame.
@@ -121,6 +125,8 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     inputs_path = Path(inputs_file) if inputs_file else seq / "inputs.csv"
     _guard(output, csv_file, {"SEQUENCE": seq, "--rig": rig_file, "--mask": mask_file, "--inputs": inputs_path,
                               "SEQUENCE/timestamps.csv": seq / "timestamps.csv", "--truth": truth_file})
+    if fields is not None and dense:
+        raise BadInput("--fields: not with --dense (the dense mode measures whole frames)")
     if overlay_dir is not None:
         from .measure_overlay import check_overlay_dir
 
@@ -161,7 +167,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
 
     t_start = time.perf_counter()
     mode = "gray" if dense else "color"
-    sizing = None if dense else {"size_factor": _size_factor(size_factor)}
+    sizing = None if dense else {"size_factor": _size_factor(size_factor), "fields": fields}
     with FrameReader(source, mode=mode, sizes=[c.size for c in rig.cameras], frames=range(count),
                      workers=workers) as reader:
         run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file, dense, sizing)
@@ -353,6 +359,7 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
         MeasureFailed,
         auto_reduction,
         auto_region,
+        field_image,
         measure_sequence,
         reduced_size,
         reference_frames,
@@ -384,26 +391,32 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
             ref_cam = rig.cameras[opts.ref_camera]
             sizing = {} if sizing is None else sizing
             auto = sizing.get("size_factor") is None
-            first = reference_frames(reader.read, count, opts.ref_camera) if roi is None or auto else None
+            field = {None: None, "first": 0, "second": 1}[sizing.get("fields")]
+            first = reference_frames(reader.read, count, opts.ref_camera)
             if roi is None:
                 roi = region(first)
+            _check_interlacing(first, roi, ref_cam.name, sizing)
             if auto:
                 if not first:
                     raise InputError(None, "none of the reference camera's first frames can be read (needed by "
                                            "--size-factor auto)", "images")
-                reduction, blur, reduced_blur = auto_reduction(first, roi)
+                if field is not None:
+                    first, roi_w = [field_image(f, field) for f in first], field_image(roi, field)
+                else:
+                    roi_w = roi
+                reduction, blur, reduced_blur = auto_reduction(first, roi_w)
                 sizing.update(size_factor=1.0, reduction=reduction,
                               texture_blur_px=blur if math.isfinite(blur) else None)     # None: a flat image
                 if reduction > 1.0:
                     sizing["texture_blur_reduced_px"] = reduced_blur
-                    w, h = reduced_size(ref_cam.width, ref_cam.height, reduction)
+                    w, h = reduced_size(ref_cam.width, ref_cam.height // (1 if field is None else 2), reduction)
                     log.info("texture blur %.2f px (camera %s): tracking on frames reduced %.2fx (%dx%d px, blur "
                              "%.2f px; --size-factor auto); positions in the full frames' pixels",
                              blur, ref_cam.name, reduction, w, h, reduced_blur)
             opts = replace(opts, size_factor=sizing["size_factor"])
             with progress(reader, "measuring", count, verbosity) as frames:
                 run = measure_sequence(frames, rig.cameras, opts, roi=roi, backend=backend,
-                                       reduction=sizing.get("reduction", 1.0))
+                                       reduction=sizing.get("reduction", 1.0), field=field)
     except InputError as exc:
         raise (exc if exc.path is not None else exc.in_file(sequence)) from None
     except MeasureFailed as exc:   # the images or the rig's cameras: name both
@@ -417,6 +430,21 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
     if rejected:
         log.info("candidates removed per gate: %s", ", ".join(f"{g} {n}" for g, n in rejected.items()))
     return run
+
+
+def _check_interlacing(first, roi, camera, sizing):
+    """Record the reference camera's first frames' median :func:`heartcv.measure.combing_ratio` over the region
+    of interest in ``sizing``, and warn when they look interlaced and ``--fields`` was not given."""
+    from heartcv.measure import COMBING_RATIO, combing_ratio
+
+    values = [combing_ratio(f, roi) for f in first or ()]
+    values = [v for v in values if math.isfinite(v)]
+    comb = float(np.median(values)) if values else None
+    sizing["combing_ratio"] = comb
+    if comb is not None and comb > COMBING_RATIO and sizing.get("fields") is None:
+        log.warning("camera %s's first frames look interlaced (combing ratio %.2f; progressive video reads below "
+                    "%g): their two fields are two instants, which breaks the tracks; measure one field with "
+                    "--fields first (or second)", camera, comb, COMBING_RATIO)
 
 
 def _measurement_set(res, times, inputs, backend, source, count, ref, highpass, rig_file, inputs_path):

@@ -331,3 +331,64 @@ def test_oversampled_frames_are_measured_reduced_and_reported_in_their_own_pixel
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout)["sigma_px"] == pytest.approx(0.7)
     assert read_measurements(out).meta["sigma_px"] == pytest.approx(0.7)
+
+
+def test_interlaced_frames_are_warned_about_and_measured_one_field(case, tmp_path):
+    """Interlaced frames built so that their first field is exactly the sequence (960 x 540 would be the frame:
+    here 480 x 540, rows 0, 2, ... the sequence's frame, rows 1, 3, ... the same view moved 3 px sideways, a second
+    instant as an interlaced camera records a fast pan; the rig's cameras with twice the vertical focal length and
+    principal point). measure warns that they look interlaced (combing ratio above 1 in --json; the sequence as it
+    is reads below 1) and names --fields. With --fields first (and the same region of interest, row-doubled) it
+    measures exactly the sequence: the same positions as the progressive run, bit for bit, and its pixel rows
+    mapped to the full frames (v = 2 v_field). --fields with --dense is exit 2 with nothing written."""
+    import cv2
+
+    from heartcv.camera import Camera
+    from heartcv.io import read_rig, write_rig
+    from heartcv.tracker.io import read_measurements
+
+    rig = read_rig(case["rig"])
+    W, H = rig.cameras[0].size
+    mask = np.zeros((H, W), np.uint8)
+    mask[H // 6:H - H // 6, W // 6:W - W // 6] = 255
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    cv2.imwrite(str(tmp_path / "mask2.png"), np.repeat(mask, 2, axis=0))
+    native = json.loads(_measure(case, "--json", "--mask", tmp_path / "mask.png").stdout)
+    assert native["combing_ratio"] < 1.0 and native["fields"] is None
+    ref = read_measurements(case["out"] / "meas.npz")
+    woven = tmp_path / "woven"
+    for cam in ("cam0", "cam1", "cam2"):
+        (woven / cam).mkdir(parents=True)
+        for f in sorted((case["seq"] / cam).iterdir()):
+            im = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            out = np.repeat(im, 2, axis=0)
+            out[0::2], out[1::2] = im, np.roll(im, 3, axis=1)
+            cv2.imwrite(str(woven / cam / f.name), out)
+    for name in ("timestamps.csv", "inputs.csv"):
+        shutil.copy(case["seq"] / name, woven / name)
+    tall = []
+    for c in rig.cameras:
+        K = np.array(c.K, float)
+        K[1] *= 2.0
+        K[2] = [0.0, 0.0, 1.0]
+        tall.append(Camera(c.name, c.width, 2 * c.height, K, c.dist, c.cam_from_rig))
+    write_rig(tmp_path / "rig2.yaml", type(rig)(tall))
+    out = tmp_path / "w.npz"
+    args = ("--json", "--mask", tmp_path / "mask2.png")
+    res = _measure(case, *args, seq=woven, rig=tmp_path / "rig2.yaml", out=out)
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["combing_ratio"] > 1.0
+    assert "look interlaced" in res.stderr and "--fields first" in res.stderr, res.stderr
+    out.unlink()
+    res = _measure(case, *args, "--fields", "first", seq=woven, rig=tmp_path / "rig2.yaml", out=out)
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["fields"] == "first" and "look interlaced" not in res.stderr
+    m = read_measurements(out)
+    np.testing.assert_array_equal(m.positions, ref.positions)
+    np.testing.assert_array_equal(m.point_ids, ref.point_ids)
+    uv, uv_ref = np.array(m.meta["reference_uv"]), np.array(ref.meta["reference_uv"])
+    np.testing.assert_allclose(uv, uv_ref * [1.0, 2.0], atol=1e-3)     # float32 pixel positions
+    out.unlink()
+    _assert_failed_cleanly(_measure(case, "--dense", "--fields", "first", seq=woven, out=out), "--fields", "--dense")
+    assert not out.exists()

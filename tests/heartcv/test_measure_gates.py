@@ -245,3 +245,42 @@ def test_auto_reduction_reduces_blurry_frames_until_they_read_sharp():
     small = cv2.GaussianBlur(rng.standard_normal((160, 200)) * 30 + 128, (0, 0), 4.0)
     f, blur, reduced = auto_reduction([small])
     assert f == pytest.approx(160 / MIN_REDUCED_SIDE_PX) and reduced > SHARP_BLUR_PX
+
+
+def test_combing_ratio_tells_interlaced_frames():
+    """White noise reads 1 (both second differences have variance 1.5 sigma^2; 5 % on 400 x 500), smooth texture
+    less (noise blurred by 1.5 px: below 0.3), an image whose odd rows come from a copy moved by 3 px (two fields,
+    two instants) more than COMBING_RATIO, the same image progressive less; a flat image NaN."""
+    import cv2
+
+    from heartcv.measure import COMBING_RATIO, combing_ratio
+
+    rng = np.random.default_rng(4)
+    noise = rng.standard_normal((400, 500)) * 20 + 128
+    assert combing_ratio(noise) == pytest.approx(1.0, rel=0.05)
+    smooth = cv2.GaussianBlur(noise, (0, 0), 1.5)
+    assert combing_ratio(smooth) < 0.3
+    moved = np.roll(smooth, 3, axis=1)
+    woven = smooth.copy()
+    woven[1::2] = moved[1::2]
+    assert combing_ratio(woven) > COMBING_RATIO > combing_ratio(smooth)
+    assert np.isnan(combing_ratio(np.full((50, 60), 7.0)))
+
+
+def test_field_camera_sees_what_the_field_shows():
+    """One field of an interlaced image (rows field, field + 2, ...): the field camera projects every point at
+    ``(u, (v - field) / 2)`` of the full camera's projection (closed form, with distortion, to 1e-9 px); its height
+    is the field's row count."""
+    from heartcv.measure import field_camera, field_image
+
+    K = np.array([[812.0, 0.7, 401.3], [0.0, 805.0, 297.9], [0.0, 0.0, 1.0]])
+    cam = Camera("c", 800, 601, K, np.array([-0.21, 0.07, 1e-3, -2e-3, 0.01]))
+    rng = np.random.default_rng(5)
+    X = np.column_stack([rng.uniform(-0.02, 0.02, (40, 2)), rng.uniform(0.05, 0.1, 40)])
+    uv = cam.project(X)
+    img = np.arange(601 * 3).reshape(601, 3)
+    for f in (0, 1):
+        fc = field_camera(cam, f)
+        assert fc.height == field_image(img, f).shape[0] == len(range(f, 601, 2)) and fc.width == 800
+        np.testing.assert_allclose(fc.project(X), np.column_stack([uv[:, 0], (uv[:, 1] - f) / 2]), atol=1e-9)
+        np.testing.assert_array_equal(field_image(img, f), img[f::2])
