@@ -433,13 +433,13 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
 
 
 def _check_interlacing(first, roi, camera, sizing):
-    """Record the reference camera's first frames' median :func:`heartcv.measure.combing_ratio` over the region
-    of interest in ``sizing``, and warn when they look interlaced and ``--fields`` was not given."""
-    from heartcv.measure import COMBING_RATIO, combing_ratio
+    """Record the reference camera's first frames' combing ratio over the region of interest
+    (:func:`heartcv.measure.frames_combing_ratio`) in ``sizing``, and warn when they look interlaced and
+    ``--fields`` was not given."""
+    from heartcv.measure import COMBING_RATIO, frames_combing_ratio
 
-    values = [combing_ratio(f, roi) for f in first or ()]
-    values = [v for v in values if math.isfinite(v)]
-    comb = float(np.median(values)) if values else None
+    comb = frames_combing_ratio(first or (), roi)
+    comb = comb if math.isfinite(comb) else None
     sizing["combing_ratio"] = comb
     if comb is not None and comb > COMBING_RATIO and sizing.get("fields") is None:
         log.warning("camera %s's first frames look interlaced (combing ratio %.2f; progressive video reads below "

@@ -63,7 +63,8 @@ from .triangulation import triangulate
 
 __all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_factor",
            "MIN_REDUCED_SIDE_PX", "REDUCTION_STEP", "auto_reduction", "reduced_size", "reduce_image", "reduce_mask",
-           "reduced_camera", "field_image", "field_camera", "COMBING_RATIO", "combing_ratio", "MeasureResult",
+           "reduced_camera", "field_image", "field_camera", "COMBING_RATIO", "combing_ratio",
+           "frames_combing_ratio", "MeasureResult",
            "Highlights",
            "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
            "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
@@ -299,6 +300,13 @@ def combing_ratio(image, mask=None) -> float:
     m = m[2:-2]
     den = float(np.mean(d2[m] ** 2)) if m.any() else 0.0
     return float(np.mean(d1[m] ** 2)) / den if den > 0 else math.nan
+
+
+def frames_combing_ratio(frames, mask=None) -> float:
+    """The median :func:`combing_ratio` of ``frames`` (the reference camera's first frames) over ``mask``, NaN
+    where none is finite (no frame, flat frames)."""
+    values = [v for v in (combing_ratio(f, mask) for f in frames) if math.isfinite(v)]
+    return float(np.median(values)) if values else math.nan
 
 
 def auto_reduction(frames, mask=None) -> tuple[float, float, float]:

@@ -250,7 +250,8 @@ def test_auto_reduction_reduces_blurry_frames_until_they_read_sharp():
 def test_combing_ratio_tells_interlaced_frames():
     """White noise reads 1 (both second differences have variance 1.5 sigma^2; 5 % on 400 x 500), smooth texture
     less (noise blurred by 1.5 px: below 0.3), an image whose odd rows come from a copy moved by 3 px (two fields,
-    two instants) more than COMBING_RATIO, the same image progressive less; a flat image NaN."""
+    two instants) more than COMBING_RATIO, the same image progressive less; a flat image NaN; over frames the median
+    of the finite ones."""
     import cv2
 
     from heartcv.measure import COMBING_RATIO, combing_ratio
@@ -265,6 +266,11 @@ def test_combing_ratio_tells_interlaced_frames():
     woven[1::2] = moved[1::2]
     assert combing_ratio(woven) > COMBING_RATIO > combing_ratio(smooth)
     assert np.isnan(combing_ratio(np.full((50, 60), 7.0)))
+    from heartcv.measure import frames_combing_ratio
+
+    frames = [smooth, woven, noise, np.full((400, 500), 7.0)]
+    assert frames_combing_ratio(frames) == np.median([combing_ratio(f) for f in frames[:3]])   # the flat one left out
+    assert np.isnan(frames_combing_ratio([]))
 
 
 def test_field_camera_sees_what_the_field_shows():
