@@ -277,7 +277,7 @@ COMBING_RATIO = 1.0
 (its texture is smooth over two rows): the in-vivo heart 0.27-0.28, with added noise of 6 grey levels 0.37-0.41,
 the Hamlyn silicone phantom 0.45, the OpenCV stereo views 0.16-0.19, upsampled frames 0.09-0.12. Interlaced video
 of a moving scene reads more where its two fields differ: the in-vivo heart woven from consecutive frames 0.6-3.0,
-the scikit-surgery laparoscope's 1080i chessboard views 0.6-6.3."""
+the scikit-surgery laparoscope's chessboard views (1920 x 1080, visibly combed) 0.6-6.3."""
 
 
 def combing_ratio(image, mask=None) -> float:
