@@ -125,8 +125,6 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     inputs_path = Path(inputs_file) if inputs_file else seq / "inputs.csv"
     _guard(output, csv_file, {"SEQUENCE": seq, "--rig": rig_file, "--mask": mask_file, "--inputs": inputs_path,
                               "SEQUENCE/timestamps.csv": seq / "timestamps.csv", "--truth": truth_file})
-    if fields is not None and dense:
-        raise BadInput("--fields: not with --dense (the dense mode measures whole frames)")
     if overlay_dir is not None:
         from .measure_overlay import check_overlay_dir
 
@@ -167,7 +165,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
 
     t_start = time.perf_counter()
     mode = "gray" if dense else "color"
-    sizing = None if dense else {"size_factor": _size_factor(size_factor), "fields": fields}
+    sizing = {"fields": fields} if dense else {"size_factor": _size_factor(size_factor), "fields": fields}
     with FrameReader(source, mode=mode, sizes=[c.size for c in rig.cameras], frames=range(count),
                      workers=workers) as reader:
         run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file, dense, sizing)
@@ -383,10 +381,13 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 StereoPair.from_cameras(rig.cameras, opts.ref_camera)
             except ValueError as exc:
                 raise InputError(rig_file, f"--dense: {exc}", "cameras") from None
+            first = reference_frames(reader.read, count, opts.ref_camera)
             if roi is None:   # as the sparse mode: no points on instruments, highlights or a static background
-                roi = region(reference_frames(reader.read, count, opts.ref_camera))
+                roi = region(first)
+            _check_interlacing(first, roi, rig.cameras[opts.ref_camera].name, sizing)
+            field = {None: None, "first": 0, "second": 1}[sizing.get("fields")]
             with progress(reader, "measuring (dense)", count, verbosity) as frames:
-                run = dense_sequence(frames, rig.cameras, opts, roi=roi)
+                run = dense_sequence(frames, rig.cameras, opts, roi=roi, field=field)
         else:
             ref_cam = rig.cameras[opts.ref_camera]
             sizing = {} if sizing is None else sizing

@@ -13,7 +13,9 @@ others are not used):
 1. *Rectification* of the pair from the calibration (``cv2.stereoRectify`` with zero disparity at infinity,
    ``cv2.initUndistortRectifyMap``). For a rig that is already rectified (no distortion, equal intrinsics, the
    partner displaced along the reference camera's x axis) this is the identity to 1e-3 px, which is checked, and
-   the remapping is skipped. Vertical baselines are not supported.
+   the remapping is skipped. Vertical baselines are not supported. ``stereoRectify``'s focal length is the
+   cameras' mean fy; for pixels wider than tall (fy < fx: one field of interlaced video) the rectified images get
+   ``round(H mean fx / mean fy)`` rows instead, so that it is the mean fx and the columns keep their resolution.
 2. *Disparity*: semi-global matching ([SGM]; ``cv2.StereoSGBM``, 3-way mode by default, ``P1 = 8 b^2``,
    ``P2 = 32 b^2`` for blocks of b x b pixels, OpenCV's speckle filter) from the left image to the right one and,
    with the mirrored matcher (``cv2.ximgproc.createRightMatcher``), from the right image to the left one. Each
@@ -78,7 +80,7 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import logging
 import math
 import time
@@ -87,7 +89,7 @@ import numpy as np
 
 from .camera import Camera, Rig, invert_pose
 from .features import saturation_mask
-from .measure import MeasureFailed, MeasureResult, SequenceRun, assemble_result, run_frames
+from .measure import MeasureFailed, MeasureResult, SequenceRun, WorkingView, assemble_result, run_frames
 
 __all__ = ["DenseOptions", "StereoPair", "DenseTracker", "dense_sequence", "refine_disparity", "default_grid_step",
            "default_block_size"]
@@ -263,7 +265,10 @@ class StereoPair:
     ----------
     cameras : tuple of Camera        the whole rig
     ref, other : int                 indices of the reference camera and its partner
-    width, height : int
+    width, height : int              the original images' size (px)
+    rect_width, rect_height : int    the rectified images' size (px): the original size, except for cameras whose
+                                     pixels are wider than tall (fy < fx: one field of interlaced video), whose
+                                     rows are resampled so that ``f`` is fx, the horizontal resolution
     f, cx, cy : float                rectified focal length and principal point (px), the same in both rectified
                                      cameras (zero disparity at infinity)
     baseline : float                 x of the partner's centre in the rectified reference frame (m): > 0 when the
@@ -285,6 +290,14 @@ class StereoPair:
     rig_from_rect: np.ndarray
     identity: bool
     maps: tuple | None
+    rect_width: int = 0
+    rect_height: int = 0
+
+    def __post_init__(self):
+        if not self.rect_width:
+            object.__setattr__(self, "rect_width", self.width)
+        if not self.rect_height:
+            object.__setattr__(self, "rect_height", self.height)
 
     @classmethod
     def from_cameras(cls, cameras, ref: int = 0) -> "StereoPair":
@@ -313,10 +326,14 @@ class StereoPair:
             raise ValueError(f"cameras {a.name} and {b.name}: the image sizes differ ({a.width}x{a.height}, "
                              f"{b.width}x{b.height}); dense matching needs equal sizes")
         W, H = a.width, a.height
+        # stereoRectify's focal length is the cameras' mean fy times (rectified rows / rows): for pixels narrower
+        # than tall (fy < fx: one field of interlaced video) the rows are resampled so that it is their mean fx,
+        # the resolution along the disparity (else the columns would be squeezed, half the image black for a field)
+        Hr = max(H, int(round(H * (a.K[0, 0] + b.K[0, 0]) / (a.K[1, 1] + b.K[1, 1]))))
         T = b.cam_from_rig @ invert_pose(a.cam_from_rig)                      # other_from_ref
         R1, R2, P1, P2, *_ = cv2.stereoRectify(a.K, a.dist.copy(), b.K, b.dist.copy(), (W, H),
                                                T[:3, :3].copy(), T[:3, 3].reshape(3, 1).copy(),
-                                               flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1)
+                                               flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1, newImageSize=(W, Hr))
         if abs(P2[1, 3]) > abs(P2[0, 3]):
             raise ValueError(f"cameras {a.name} and {b.name}: vertical baseline; dense matching needs the partner "
                              "displaced mostly along the reference camera's x axis")
@@ -324,7 +341,7 @@ class StereoPair:
         # identity: the rectifying rotations move no pixel (at most 2 f |R - I| px) and the new intrinsics are the
         # old ones, each to _IDENTITY_PX
         rot_px = 2 * f * max(np.abs(R1 - np.eye(3)).max(), np.abs(R2 - np.eye(3)).max())
-        identity = (not a.dist.any() and not b.dist.any() and rot_px <= _IDENTITY_PX
+        identity = (Hr == H and not a.dist.any() and not b.dist.any() and rot_px <= _IDENTITY_PX
                     and max(np.abs(P1[:3, :3] - a.K).max(), np.abs(P2[:3, :3] - b.K).max()) <= _IDENTITY_PX)
         if identity:
             # the original cameras are the rectified ones: use their exact intrinsics (not OpenCV's float32 echo)
@@ -336,14 +353,14 @@ class StereoPair:
         else:
             cx, cy = float(P1[0, 2]), float(P1[1, 2])
             baseline = float(-P2[0, 3] / P2[0, 0])
-            maps = tuple(cv2.initUndistortRectifyMap(c.K, c.dist.copy(), Rr, P[:3, :3], (W, H), cv2.CV_16SC2)
+            maps = tuple(cv2.initUndistortRectifyMap(c.K, c.dist.copy(), Rr, P[:3, :3], (W, Hr), cv2.CV_16SC2)
                          for c, Rr, P in ((a, R1, P1), (b, R2, P2)))
         rect_from_refcam = np.eye(4)
         rect_from_refcam[:3, :3] = R1
         rig_from_rect = invert_pose(a.cam_from_rig) @ invert_pose(rect_from_refcam)
         logger.debug("dense pair %s-%s: f %.3f px, baseline %.6g m, identity rectification %s", a.name, b.name, f,
                      baseline, identity)
-        return cls(cams, int(ref), other, W, H, f, cx, cy, baseline, rig_from_rect, bool(identity), maps)
+        return cls(cams, int(ref), other, W, H, f, cx, cy, baseline, rig_from_rect, bool(identity), maps, W, Hr)
 
     def rectify(self, ref_image, other_image):
         """The rectified (reference, partner) images (the same arrays with the identity rectification)."""
@@ -611,6 +628,7 @@ class DenseTracker:
             raise ValueError(f"roi: shape {(H, W)} expected, got {roi.shape}")
         self.roi = roi.astype(bool)
         self.roi_rect = self.pair.rectify_mask(self.roi)
+        W, H = self.pair.rect_width, self.pair.rect_height          # the seed grid lies in the rectified image
         self.step_px = options.grid_step_px or default_grid_step(W, H)
         s = self.step_px
         self.grid_shape = (H // s, W // s)
@@ -653,13 +671,13 @@ class DenseTracker:
         else:
             r = _probe_range(o, ref, other, ref_is_left)
             if r is None:
-                lo, hi = 0, _ceil16(p.width / 3)
+                lo, hi = 0, _ceil16(p.rect_width / 3)
                 how = "default 0..W/3 (too few consistent matches in the first pair to measure it)"
                 logger.warning("dense: disparity range not measurable on the first pair; using 0..%d px", hi)
             else:
                 lo, hi = r
                 how = "measured on the first pair"
-        self.matcher = _Matcher(o, p.width, p.height, lo, hi, ref_is_left)
+        self.matcher = _Matcher(o, p.rect_width, p.rect_height, lo, hi, ref_is_left)
         self.disparity_range = (self.matcher.d_min, self.matcher.d_max)
         logger.info("dense: disparities %d..%d px (%s), %dx%d blocks, seed grid %d px (%d cells)",
                     *self.disparity_range, how, self.matcher.block, self.matcher.block, self.step_px,
@@ -726,7 +744,7 @@ class DenseTracker:
         p1 = p0 + _sample(fwd, p0)
         back = p1 + _sample(bwd, p1)
         fb_ok = np.linalg.norm(back - p0, axis=1) <= o.fb_tolerance_px
-        W, H = self.pair.width, self.pair.height
+        W, H = self.pair.rect_width, self.pair.rect_height
         inside = (p1[:, 0] >= 0) & (p1[:, 0] <= W - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= H - 1)
         self.alive[live[~inside]] = False                                      # left the image: ends
         live, p1, fb_ok = live[inside], p1[inside], fb_ok[inside]
@@ -779,7 +797,7 @@ class DenseTracker:
         """Whether a point of ``uv`` (N, 2) lies within one grid step of each pixel of ``at`` (M, 2) int."""
         import cv2
 
-        H, W = self.pair.height, self.pair.width
+        H, W = self.pair.rect_height, self.pair.rect_width
         free = np.full((H, W), 255, np.uint8)
         if len(uv):
             q = np.rint(uv).astype(np.int64)
@@ -854,7 +872,7 @@ class DenseTracker:
 # A whole sequence
 # =====================================================================================================================
 def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, roi=None,
-                   clock=time.perf_counter) -> SequenceRun:
+                   clock=time.perf_counter, field: int | None = None) -> SequenceRun:
     """Dense measurement of a whole sequence: set up a :class:`DenseTracker` and feed it every instant of
     ``frames`` (the contract of :func:`heartcv.measure.measure_sequence`).
 
@@ -876,6 +894,11 @@ def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, r
         missing); default the whole image.
     clock : callable
         Time source of the per-instant timings.
+    field : {None, 0, 1}
+        Interlaced video: measure one field of every image, rows ``field``, ``field + 2``, ...
+        (:class:`heartcv.measure.WorkingView`; a given ``options.pixel_sigma`` is in the full images' pixels), the
+        result in the full images' pixels (``uv``; ``sigma_px`` and ``reprojection_rms`` times sqrt 2). None: the
+        whole images.
 
     Returns
     -------
@@ -890,8 +913,19 @@ def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, r
         No point could be measured in any instant.
     """
     t0 = clock()
+    view = None
+    if field is not None:
+        cameras = list(cameras)
+        ref = cameras[options.ref_camera]
+        full_roi = np.ones((ref.height, ref.width), bool) if roi is None else np.asarray(roi, bool)
+        view = WorkingView.of(cameras, full_roi, field=field)
+        cameras, roi, frames = view.cameras, view.roi, view.frames(frames)
+        if options.pixel_sigma is not None:            # given in the full frames' pixels
+            options = replace(options, pixel_sigma=options.pixel_sigma / view.pixel_scale(options.ref_camera))
     tracker = DenseTracker(cameras, options, roi=roi)
     run = run_frames(tracker, frames, clock, clock() - t0)
+    if view is not None:
+        run = replace(run, result=view.to_full(run.result, options.ref_camera, full_roi))
     res = run.result
     if res.point_ids.size == 0 or not res.seen.any():
         raise MeasureFailed(f"no surface point could be measured densely (region of interest {int(res.roi.sum())} "

@@ -63,7 +63,7 @@ from .triangulation import triangulate
 
 __all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_factor",
            "MIN_REDUCED_SIDE_PX", "REDUCTION_STEP", "auto_reduction", "reduced_size", "reduce_image", "reduce_mask",
-           "reduced_camera", "field_image", "field_camera", "COMBING_RATIO", "combing_ratio",
+           "reduced_camera", "field_image", "field_camera", "WorkingView", "COMBING_RATIO", "combing_ratio",
            "frames_combing_ratio", "MeasureResult",
            "Highlights",
            "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
@@ -978,16 +978,64 @@ def auto_region(roi_frames, options: MeasureOptions = MeasureOptions()) -> np.nd
     return mask
 
 
-def _to_full(res: MeasureResult, maps, ref: int, roi) -> MeasureResult:
-    """A result measured on transformed images (one field, reduced: :func:`measure_sequence`) in the full images'
-    pixels: per camera ``full = a * work + b`` (``maps``: (a (2,), b (2,)) per camera); the reprojection RMS and
-    sigma scaled by the reference camera's geometric mean of ``a``."""
-    uv = np.array(res.uv, np.float64)
-    for c, (a, b) in enumerate(maps):
-        uv[:, :, c] = uv[:, :, c] * a + b
-    scale = math.sqrt(float(np.prod(maps[ref][0])))
-    return replace(res, uv=uv.astype(res.uv.dtype), reprojection_rms=res.reprojection_rms * scale,
-                   sigma_px=res.sigma_px * scale, roi=np.asarray(roi, bool).copy())
+@dataclass(frozen=True)
+class WorkingView:
+    """The images as a tracker sees them: one field of interlaced video (:func:`field_image`), then reduced
+    (:func:`reduce_image`), or the images themselves. ``cameras`` and ``roi`` are in those working pixels, and
+    ``maps`` gives per camera ``(a (2,), b (2,))`` with ``full pixel = a * working pixel + b``."""
+
+    cameras: list
+    roi: np.ndarray
+    maps: list
+    field: int | None = None
+    reduction: float = 1.0
+
+    @classmethod
+    def of(cls, cameras, roi, *, field: int | None = None, reduction: float = 1.0) -> "WorkingView":
+        """The working view of ``cameras`` and the reference camera's ``roi`` (full images) for ``field`` (None, 0
+        or 1) and ``reduction`` (>= 1)."""
+        if not (math.isfinite(reduction) and reduction >= 1.0):
+            raise ValueError(f"reduction: a factor >= 1 expected, got {reduction}")
+        if field not in (None, 0, 1):
+            raise ValueError(f"field: None, 0 or 1 expected, got {field!r}")
+        cameras = list(cameras)
+        maps = [(np.ones(2), np.zeros(2)) for _ in cameras]
+        if field is not None:
+            cameras = [field_camera(c, field) for c in cameras]
+            roi = field_image(roi, field)
+            maps = [(np.array([1.0, 2.0]), np.array([0.0, float(field)])) for _ in cameras]
+        if reduction > 1.0:
+            small = [reduced_camera(c, reduction) for c in cameras]
+            ratio = [np.array([r.width / c.width, r.height / c.height]) for c, r in zip(cameras, small)]
+            maps = [(a / q, a * (0.5 / q - 0.5) + b) for (a, b), q in zip(maps, ratio)]
+            cameras, roi = small, reduce_mask(roi, reduction)
+        return cls(cameras, np.asarray(roi, bool), maps, field, float(reduction))
+
+    @property
+    def transformed(self) -> bool:
+        return self.field is not None or self.reduction > 1.0
+
+    def pixel_scale(self, camera: int) -> float:
+        """The geometric mean of camera ``camera``'s full-to-working scale factors (a full pixel length is this
+        many working pixels' length, on average): sqrt 2 for a field alone."""
+        return math.sqrt(float(np.prod(self.maps[camera][0])))
+
+    def frames(self, frames):
+        """``(k, images, problems)`` instants with every image in working pixels."""
+        f, r = self.field, self.reduction
+        return ((k, [None if im is None else reduce_image(im if f is None else field_image(im, f), r)
+                     for im in images], problems) for k, images, problems in frames)
+
+    def to_full(self, res: MeasureResult, ref: int, roi) -> MeasureResult:
+        """A result measured in working pixels in the full images' pixels: ``uv`` mapped per camera, the
+        reprojection RMS and sigma times the reference camera's :meth:`pixel_scale`, ``roi`` the full-size
+        region. Positions and covariances (metres) are unchanged."""
+        uv = np.array(res.uv, np.float64)
+        for c, (a, b) in enumerate(self.maps):
+            uv[:, :, c] = uv[:, :, c] * a + b
+        scale = self.pixel_scale(ref)
+        return replace(res, uv=uv.astype(res.uv.dtype), reprojection_rms=res.reprojection_rms * scale,
+                       sigma_px=res.sigma_px * scale, roi=np.asarray(roi, bool).copy())
 
 
 def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions(), *, roi=None, roi_frames=(),
@@ -1030,37 +1078,20 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
     MeasureFailed
         No textured surface for the region of interest, or no point tracked in any instant.
     """
-    if not (math.isfinite(reduction) and reduction >= 1.0):
-        raise ValueError(f"reduction: a factor >= 1 expected, got {reduction}")
-    if field not in (None, 0, 1):
-        raise ValueError(f"field: None, 0 or 1 expected, got {field!r}")
     t0 = clock()
     if roi is None:
         roi = auto_region(roi_frames, options)
     full_roi = np.asarray(roi, bool)
-    roi = full_roi
-    maps = [(np.ones(2), np.zeros(2)) for _ in cameras]          # full pixel = a * working pixel + b
-    if field is not None:
-        cameras = [field_camera(c, field) for c in cameras]
-        roi = field_image(roi, field)
-        maps = [(np.array([1.0, 2.0]), np.array([0.0, float(field)])) for _ in cameras]
-    if reduction > 1.0:
-        small = [reduced_camera(c, reduction) for c in cameras]
-        ratio = [np.array([r.width / c.width, r.height / c.height]) for c, r in zip(cameras, small)]
-        maps = [(a / q, a * (0.5 / q - 0.5) + b) for (a, b), q in zip(maps, ratio)]
-        cameras, roi = small, reduce_mask(roi, reduction)
-    transformed = field is not None or reduction > 1.0
-    if transformed:
+    view = WorkingView.of(cameras, full_roi, field=field, reduction=reduction)
+    cameras, roi = view.cameras, view.roi
+    if view.transformed:
         if options.pixel_sigma is not None:            # given in the full frames' pixels
-            scale = math.sqrt(float(np.prod(maps[options.ref_camera][0])))
-            options = replace(options, pixel_sigma=options.pixel_sigma / scale)
-        frames = ((k, [None if im is None else reduce_image(im if field is None else field_image(im, field),
-                                                            reduction) for im in images], problems)
-                  for k, images, problems in frames)
+            options = replace(options, pixel_sigma=options.pixel_sigma / view.pixel_scale(options.ref_camera))
+        frames = view.frames(frames)
     measurer = Measurer(cameras, options, roi=roi, backend=backend)
     run = run_frames(measurer, frames, clock, clock() - t0)
-    if transformed:
-        run = replace(run, result=_to_full(run.result, maps, options.ref_camera, full_roi))
+    if view.transformed:
+        run = replace(run, result=view.to_full(run.result, options.ref_camera, full_roi))
     if run.result.point_ids.size == 0 or not run.result.seen.any():
         raise MeasureFailed(f"no surface point could be tracked (region of interest {int(run.result.roi.sum())} px "
                             f"in camera {measurer.cameras[options.ref_camera].name}): "

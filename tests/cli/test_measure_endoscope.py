@@ -140,6 +140,65 @@ def test_dense_and_overlay(pair, tmp_path):
     assert res.exit_code == 2 and (tmp_path / "mine" / "notes.txt").read_text() == "keep"
 
 
+def test_dense_measures_one_field_of_interlaced_frames(pair, tmp_path):
+    """--dense --fields: frames woven from the pair (rows 0, 2, ... the pair's images; rows 1, 3, ... the same views
+    moved 3 px sideways, a second instant), with a rig of twice the rows (vertical focal length and principal point
+    doubled). Without --fields the dense mode warns that they look interlaced (combing ratio above 1; the pair as it
+    is reads below 1). With --fields first it measures exactly the pair: the same positions and covariances as the
+    dense run on the pair, bit for bit, its pixel rows mapped to the full frames (v = 2 v_field) and its pixel
+    sigma times sqrt 2; --fields second measures the other instant (the plane 30 mm away)."""
+    import cv2
+
+    from heartcv.camera import Camera
+    from heartcv.io import read_rig, write_rig
+    from heartcv.tracker.io import read_measurements
+
+    mask = np.zeros((H, W), np.uint8)
+    mask[H // 6:H - H // 6, W // 6:W - W // 6] = 255
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    cv2.imwrite(str(tmp_path / "mask2.png"), np.repeat(mask, 2, axis=0))
+    native, out = _measure(pair, tmp_path / "n", "--dense", "--mask", tmp_path / "mask.png")
+    assert native.exit_code == 0, native.output
+    s_native = json.loads(native.stdout)
+    assert s_native["combing_ratio"] < 1.0 and s_native["fields"] is None
+    ref = read_measurements(out)
+    woven = tmp_path / "woven"
+    for cam in ("cam0", "cam1"):
+        (woven / cam).mkdir(parents=True)
+        for f in sorted((pair / "seq" / cam).iterdir()):
+            im = cv2.imread(str(f))
+            w = np.repeat(im, 2, axis=0)
+            w[0::2], w[1::2] = im, np.roll(im, -3, axis=1)
+            cv2.imwrite(str(woven / cam / f.name), w)
+    rig = read_rig(pair / "rig.yaml")
+    tall = []
+    for c in rig.cameras:
+        K = np.array(c.K, float)
+        K[1] *= 2.0
+        tall.append(Camera(c.name, c.width, 2 * c.height, K, c.dist, c.cam_from_rig))
+    write_rig(tmp_path / "tall.yaml", type(rig)(tall))
+    args = ("--dense", "--mask", tmp_path / "mask2.png")
+    res, _ = _measure(pair, tmp_path / "w", *args, seq=woven, rig=tmp_path / "tall.yaml")
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["combing_ratio"] > 1.0
+    assert "look interlaced" in res.stderr and "--fields first" in res.stderr, res.stderr
+    res, out = _measure(pair, tmp_path / "f", *args, "--fields", "first", seq=woven, rig=tmp_path / "tall.yaml")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["fields"] == "first" and "look interlaced" not in res.stderr
+    assert s["sigma_px"] == pytest.approx(s_native["sigma_px"] * np.sqrt(2), rel=1e-9)
+    m = read_measurements(out)
+    np.testing.assert_array_equal(m.positions, ref.positions)
+    np.testing.assert_array_equal(m.covariances, ref.covariances)
+    np.testing.assert_allclose(np.array(m.meta["reference_uv"]), np.array(ref.meta["reference_uv"]) * [1.0, 2.0],
+                               atol=1e-3)
+    res, out = _measure(pair, tmp_path / "s", *args, "--fields", "second", seq=woven, rig=tmp_path / "tall.yaml")
+    assert res.exit_code == 0, res.output
+    m2 = read_measurements(out)
+    z = m2.positions[..., 2][np.isfinite(m2.positions[..., 2])]
+    assert z.size > 1000 and np.allclose(z, 0.03, atol=0.0005)            # the plane 30 mm away
+
+
 def test_dense_takes_the_automatic_region_of_interest(pair, tmp_path):
     """Without --mask the dense mode is given the sparse mode's automatic region of interest (the moving tissue of
     the first frames, §10.1; here a dark band is left out of it): the same region in both summaries,

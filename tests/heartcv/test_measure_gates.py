@@ -273,6 +273,39 @@ def test_combing_ratio_tells_interlaced_frames():
     assert np.isnan(frames_combing_ratio([]))
 
 
+def test_working_view_maps_working_pixels_back_to_the_full_images():
+    """WorkingView.of (one field, then reduced; or either alone): for each camera, ``a * uv_work + b`` of the working
+    camera's projection is the full camera's projection (with distortion, to 1e-6 px), the working cameras' sizes
+    are those of the working images, and the pixel scale is the geometric mean of ``a``."""
+    from heartcv.measure import WorkingView, reduce_image
+
+    K = np.array([[812.0, 0.7, 401.3], [0.0, 805.0, 297.9], [0.0, 0.0, 1.0]])
+    cams = [Camera("a", 800, 601, K, np.array([-0.21, 0.07, 1e-3, -2e-3, 0.01])),
+            Camera("b", 800, 601, K, np.zeros(5), np.r_[np.c_[np.eye(3), [-0.005, 0, 0]], [[0, 0, 0, 1]]])]
+    rng = np.random.default_rng(6)
+    X = np.column_stack([rng.uniform(-0.02, 0.02, (40, 2)), rng.uniform(0.05, 0.1, 40)])
+    img = rng.integers(0, 255, (601, 800), dtype=np.uint8)
+    roi = np.ones((601, 800), bool)
+    for field, reduction in ((None, 1.0), (0, 1.0), (1, 1.0), (None, 2.3), (1, 1.7)):
+        view = WorkingView.of(cams, roi, field=field, reduction=reduction)
+        assert view.transformed == (field is not None or reduction > 1)
+        (_, [w0, _], _), = view.frames([(0, [img, img], [])])
+        assert w0.shape == view.roi.shape == (view.cameras[0].height, view.cameras[0].width)
+        expected = img if field is None else img[field::2]
+        if reduction == 1.0:
+            np.testing.assert_array_equal(w0, expected)
+        else:
+            np.testing.assert_array_equal(w0, reduce_image(expected, reduction))
+        for c, cam in enumerate(cams):
+            a, b = view.maps[c]
+            np.testing.assert_allclose(view.cameras[c].project(X) * a + b, cam.project(X), atol=1e-6)
+            assert view.pixel_scale(c) == pytest.approx(np.sqrt(a[0] * a[1]))
+    with pytest.raises(ValueError, match="field"):
+        WorkingView.of(cams, roi, field=2)
+    with pytest.raises(ValueError, match="reduction"):
+        WorkingView.of(cams, roi, reduction=0.5)
+
+
 def test_field_camera_sees_what_the_field_shows():
     """One field of an interlaced image (rows field, field + 2, ...): the field camera projects every point at
     ``(u, (v - field) / 2)`` of the full camera's projection (closed form, with distortion, to 1e-9 px); its height
