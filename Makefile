@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # `make test TORCH='torch --index-url https://download.pytorch.org/whl/cpu'`.
 TORCH ?= torch==2.13.0
 
-.PHONY: test test-slow test-gpu demo demo-invivo phantom-blind phantom95 bench clean-venv fuzz calibrate-real measure-real
+.PHONY: test test-slow test-gpu demo demo-invivo phantom-blind phantom95 heart-ramp bench clean-venv fuzz calibrate-real measure-real
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -50,6 +50,11 @@ phantom95: $(STAMP)
 # the pressure, sample_sequences/work/phantom_blind/report/
 phantom-blind: $(STAMP)
 	$(MAKE) -C sample_sequences phantom-blind PY=$(abspath $(PY))
+
+# a heart that speeds up from 72 to 96 bpm, its pressure ignored (issue 16): the GE's sampled heart rate against the
+# KF's held one, sample_sequences/work/heart_ramp/report/
+heart-ramp: $(STAMP)
+	$(MAKE) -C sample_sequences heart-ramp PY=$(abspath $(PY))
 
 # the real beating heart without calibration or pressure (issue 16): sample_sequences/work/invivo/report/; another
 # recording of rectified stereo pairs with `make demo-invivo INVIVO=DIR` (see sample_sequences/Makefile for its
