@@ -171,16 +171,17 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file, dense, sizing)
     wall = time.perf_counter() - t_start
     res = run.result
-    mset = _measurement_set(res, times, (in_names, in_units, in_values), be.name, source, count, ref,
-                            highpass * (sizing or {}).get("size_factor", 1.0) * (sizing or {}).get("reduction", 1.0),
-                            rig_file, inputs_path)
+    hp = highpass * (sizing or {}).get("size_factor", 1.0) * (sizing or {}).get("reduction", 1.0)
+    mset = _measurement_set(res, rig.cameras[ref], times, (in_names, in_units, in_values), be.name, source, count,
+                            ref, hp, rig_file, inputs_path)
     if csv_file:
         _write_csv(csv_file, mset, res.uv, names)
     write_measurements(output, mset)
     overlay = None
     if overlay_dir is not None:
         overlay = _overlay(ctx, overlay_dir, source, rig, run.result, count, ref, times, overlay_video, workers)
-    _report(output, run, times, wall, names, "dense" if dense else be.name, truth, ref, as_json, overlay, sizing)
+    _report(output, run, times, wall, names, "dense" if dense else be.name, truth, ref, as_json, overlay, sizing,
+            ref_cam=rig.cameras[ref])
 
 
 def _size_factor(value) -> float | None:
@@ -448,8 +449,9 @@ def _check_interlacing(first, roi, camera, sizing):
                     "--fields first (or second)", camera, comb, COMBING_RATIO)
 
 
-def _measurement_set(res, times, inputs, backend, source, count, ref, highpass, rig_file, inputs_path):
+def _measurement_set(res, ref_cam, times, inputs, backend, source, count, ref, highpass, rig_file, inputs_path):
     from heartcv.io import file_hash
+    from heartcv.measure_data import reference_pixels
     from heartcv.tracker.measurements import MeasurementSet
 
     in_names, in_units, in_values = inputs
@@ -458,7 +460,7 @@ def _measurement_set(res, times, inputs, backend, source, count, ref, highpass, 
     meta = {"producer": "heartcv measure", "frame_rig": rig_file, "camera_names": names, "ref_camera": names[ref],
             "backend": backend, "sigma_px": res.sigma_px, "sigma_estimated": res.sigma_estimated,
             "reference_frame_index": res.birth_frame.tolist(),
-            "reference_uv": [[float(v) for v in res.uv[b, p, ref]] for p, b in enumerate(res.birth_frame)],
+            "reference_uv": reference_pixels(res, ref_cam, ref).tolist(),
             "frame_names": list(source.frame_names[:count]), "highpass_sigma": highpass, "inputs_hash": hashes,
             "sequence": str(source.folder)} | ({"packed": source.packing} if source.packing else {})
     return MeasurementSet(times=times, point_ids=res.point_ids, positions=res.positions, covariances=res.covariances,
@@ -490,7 +492,7 @@ def _overlay(ctx, folder, source, rig, result, count, ref, times, video, workers
     return summary
 
 
-def _report(output, run, times, wall, names, backend, truth, ref, as_json, overlay=None, sizing=None):
+def _report(output, run, times, wall, names, backend, truth, ref, as_json, overlay=None, sizing=None, ref_cam=None):
     from heartcv.measure_data import measurement_summary, truth_statistics
 
     summary = {"output": str(output), "cameras": names, "backend": backend,
@@ -498,7 +500,7 @@ def _report(output, run, times, wall, names, backend, truth, ref, as_json, overl
     if overlay is not None:
         summary["overlay"] = str(overlay.get("folder"))
     if truth is not None:
-        summary.update(truth_statistics(run.result, truth, ref))
+        summary.update(truth_statistics(run.result, truth, ref, ref_cam))
     if as_json:
         emit_json(summary)
     else:

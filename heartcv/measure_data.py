@@ -14,7 +14,8 @@ import numpy as np
 from .tracker.files import InputError
 
 __all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "inputs_at_frames", "check_image_sizes",
-           "truth_for_frames", "truth_statistics", "measurement_summary", "CSV_HEADER", "measurement_csv_lines"]
+           "truth_for_frames", "truth_statistics", "reference_pixels", "measurement_summary", "CSV_HEADER",
+           "measurement_csv_lines"]
 
 # inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
 UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
@@ -147,14 +148,25 @@ def truth_for_frames(arrays: dict, meta: dict, count: int, names) -> dict:
     return out
 
 
-def truth_statistics(res, truth: dict, ref: int) -> dict:
-    """Errors of a measurement (:class:`heartcv.measure.MeasureResult`) against the render truth
-    (:func:`truth_for_frames`): the ``error_*``, ``aligned_error_*``, ``displacement_*`` and gauge keys of the
-    summary (docs/cli.md §10; :func:`heartcv.evaluate.truth_errors`)."""
+def reference_pixels(res, camera, ref: int) -> np.ndarray:
+    """Each point's pixel (P, 2) in the reference camera ``ref`` in its birth frame: where it was observed there,
+    else (a point born without the reference camera's view: the robust triangulation of three or more views left
+    it out as an outlier) the projection of its reference position through ``camera``, the reference camera."""
+    P = res.point_ids.size
+    uv = np.array([res.uv[res.birth_frame[p], p, ref] for p in range(P)], float).reshape(P, 2)
+    missing = ~np.isfinite(uv).all(axis=1)
+    if missing.any():
+        uv[missing] = camera.project(np.asarray(res.reference, float)[missing])
+    return uv
+
+
+def truth_statistics(res, truth: dict, ref: int, camera) -> dict:
+    """Errors of a measurement (:class:`heartcv.measure.MeasureResult`; ``camera`` its reference camera) against
+    the render truth (:func:`truth_for_frames`): the ``error_*``, ``aligned_error_*``, ``displacement_*`` and gauge
+    keys of the summary (docs/cli.md §10; :func:`heartcv.evaluate.truth_errors`)."""
     from .evaluate import displacement_consistency, occluded_observations, truth_errors
 
-    P = res.point_ids.size
-    uv_ref = np.array([res.uv[res.birth_frame[p], p, ref] for p in range(P)], float).reshape(P, 2)
+    uv_ref = reference_pixels(res, camera, ref)
     te = truth_errors(res.positions, uv_ref, res.birth_frame, truth, ref_camera=ref)
     out = {"error_rms_m": te.rms_m, "error_p99_m": te.p99_m, "error_mean_m": te.mean_m, "error_max_m": te.max_m,
            "error_observations": te.n, "tracks_off_surface": int((te.material_face < 0).sum()),

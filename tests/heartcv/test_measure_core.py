@@ -285,6 +285,32 @@ def test_inputs_at_frames_refuses(cols, message):
     assert str(info.value.in_file("in.csv")) == f"in.csv: {message}"
 
 
+def test_reference_pixels_project_a_point_born_without_the_reference_view():
+    """Each point's reference-camera pixel in its birth frame, for the measurement file's ``reference_uv``: the
+    observed pixel, and for a point whose reference view the robust triangulation left out at birth (NaN there; a
+    rendered noisy 3-camera scene made ``measure`` fail writing NaN to the file's metadata) the projection of its
+    reference position, finite."""
+    from types import SimpleNamespace
+
+    from heartcv.camera import Camera
+    from heartcv.measure_data import reference_pixels
+
+    cam = Camera("c0", 640, 480, np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), np.zeros(5), np.eye(4))
+    X = np.array([[0.01, -0.005, 0.2], [-0.02, 0.01, 0.25], [0.0, 0.0, 0.3]])
+    K, P, C = 3, 3, 2
+    uv = np.full((K, P, C, 2), np.nan, np.float32)
+    birth = np.array([0, 1, 2])
+    for p in range(P):
+        uv[birth[p]:, p, 0] = cam.project(X[p][None])[0] + 0.25          # observed, a quarter pixel off
+    uv[2, 2, 0] = np.nan                                                 # point 2: no reference view at birth
+    uv[2, 2, 1] = [10.0, 20.0]
+    res = SimpleNamespace(point_ids=np.arange(P), uv=uv, birth_frame=birth, reference=X)
+    got = reference_pixels(res, cam, 0)
+    np.testing.assert_allclose(got[:2], cam.project(X[:2]) + 0.25, atol=1e-4)
+    np.testing.assert_allclose(got[2], cam.project(X[2:])[0], atol=1e-9)
+    assert np.isfinite(got).all()
+
+
 def test_check_image_sizes_names_the_image_and_both_sizes():
     from heartcv.camera import Camera
     from heartcv.measure_data import check_image_sizes
