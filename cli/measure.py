@@ -93,10 +93,10 @@ MAX_WORKERS = 1024
                    "patch, high-pass, forward-backward, reprojection) by K; auto: sharp video (its first frames' "
                    "texture blur at most 1 px) as it is; blurrier or oversampled video is tracked on frames reduced "
                    "until their texture reads 1 px (positions reported in the full frames' pixels).")
-@click.option("--fields", type=click.Choice(["first", "second"]), default=None,
+@click.option("--fields", type=click.Choice(["auto", "first", "second", "none"]), default="auto", show_default=True,
               help="Interlaced video: measure one field of every frame (first: rows 0, 2, 4, ...; second: rows 1, 3, "
-                   "...), positions in the full frames' pixels. Without it measure warns when the first frames look "
-                   "interlaced.")
+                   "...), positions in the full frames' pixels; none: the whole frames; auto: the first field when "
+                   "the first frames look interlaced (combing ratio above 1, with a warning), else the whole frames.")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False), default=None,
               help="Render truth (truth.npz of `heartcv render sequence`): report the 3-D error of every point.")
 @click.option("--csv", "csv_file", type=click.Path(dir_okay=False), default=None,
@@ -385,19 +385,17 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
             first = reference_frames(reader.read, count, opts.ref_camera)
             if roi is None:   # as the sparse mode: no points on instruments, highlights or a static background
                 roi = region(first)
-            _check_interlacing(first, roi, rig.cameras[opts.ref_camera].name, sizing)
-            field = {None: None, "first": 0, "second": 1}[sizing.get("fields")]
+            field = _choose_field(first, roi, rig.cameras[opts.ref_camera].name, sizing)
             with progress(reader, "measuring (dense)", count, verbosity) as frames:
                 run = dense_sequence(frames, rig.cameras, opts, roi=roi, field=field)
         else:
             ref_cam = rig.cameras[opts.ref_camera]
             sizing = {} if sizing is None else sizing
             auto = sizing.get("size_factor") is None
-            field = {None: None, "first": 0, "second": 1}[sizing.get("fields")]
             first = reference_frames(reader.read, count, opts.ref_camera)
             if roi is None:
                 roi = region(first)
-            _check_interlacing(first, roi, ref_cam.name, sizing)
+            field = _choose_field(first, roi, ref_cam.name, sizing)
             if auto:
                 if not first:
                     raise InputError(None, "none of the reference camera's first frames can be read (needed by "
@@ -434,19 +432,32 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
     return run
 
 
-def _check_interlacing(first, roi, camera, sizing):
-    """Record the reference camera's first frames' combing ratio over the region of interest
-    (:func:`heartcv.measure.frames_combing_ratio`) in ``sizing``, and warn when they look interlaced and
-    ``--fields`` was not given."""
-    from heartcv.measure import COMBING_RATIO, frames_combing_ratio
+def _choose_field(first, roi, camera, sizing):
+    """The field to measure (0, 1 or None: the whole frames) for ``sizing["fields"]`` (``--fields``): the reference
+    camera's first frames' combing ratio over the region of interest (:func:`heartcv.measure.auto_field`) goes to
+    ``sizing["combing_ratio"]``; with ``auto`` frames that look interlaced get their first field, with a warning;
+    with ``none`` they get a warning. ``sizing["fields"]`` becomes the field measured (``first``, ``second`` or
+    None)."""
+    from heartcv.measure import COMBING_RATIO, auto_field
 
-    comb = frames_combing_ratio(first or (), roi)
+    auto, comb = auto_field(first or (), roi)
     comb = comb if math.isfinite(comb) else None
     sizing["combing_ratio"] = comb
-    if comb is not None and comb > COMBING_RATIO and sizing.get("fields") is None:
-        log.warning("camera %s's first frames look interlaced (combing ratio %.2f; progressive video reads below "
-                    "%g): their two fields are two instants, which breaks the tracks; measure one field with "
-                    "--fields first (or second)", camera, comb, COMBING_RATIO)
+    asked = sizing.get("fields") or "auto"
+    if asked == "auto":
+        field = auto
+        if field is not None:
+            log.warning("camera %s's first frames look interlaced (combing ratio %.2f; progressive video reads below "
+                        "%g): measuring the first field of every frame (--fields second for the other, --fields none "
+                        "for the whole frames)", camera, comb, COMBING_RATIO)
+    else:
+        field = {"none": None, "first": 0, "second": 1}[asked]
+        if asked == "none" and auto is not None:
+            log.warning("camera %s's first frames look interlaced (combing ratio %.2f; progressive video reads "
+                        "below %g): their two fields are two instants, which breaks the tracks; measure one field "
+                        "with --fields first (or second, or auto)", camera, comb, COMBING_RATIO)
+    sizing["fields"] = {None: None, 0: "first", 1: "second"}[field]
+    return field
 
 
 def _measurement_set(res, ref_cam, times, inputs, backend, source, count, ref, highpass, rig_file, inputs_path):

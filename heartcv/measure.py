@@ -64,7 +64,7 @@ from .triangulation import triangulate
 __all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_factor",
            "MIN_REDUCED_SIDE_PX", "REDUCTION_STEP", "auto_reduction", "reduced_size", "reduce_image", "reduce_mask",
            "reduced_camera", "field_image", "field_camera", "WorkingView", "COMBING_RATIO", "combing_ratio",
-           "frames_combing_ratio", "MeasureResult",
+           "frames_combing_ratio", "auto_field", "MeasureResult",
            "Highlights",
            "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
            "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
@@ -307,6 +307,14 @@ def frames_combing_ratio(frames, mask=None) -> float:
     where none is finite (no frame, flat frames)."""
     values = [v for v in (combing_ratio(f, mask) for f in frames) if math.isfinite(v)]
     return float(np.median(values)) if values else math.nan
+
+
+def auto_field(frames, mask=None) -> tuple[int | None, float]:
+    """``(field, ratio)`` for frames that may be interlaced: ``ratio`` the median :func:`combing_ratio` of ``frames``
+    (the reference camera's first frames) over ``mask`` (NaN: none readable), ``field`` 0 (measure the first field)
+    when it exceeds :data:`COMBING_RATIO`, else None (the whole frames)."""
+    ratio = frames_combing_ratio(frames, mask)
+    return (0 if math.isfinite(ratio) and ratio > COMBING_RATIO else None), ratio
 
 
 def auto_reduction(frames, mask=None) -> tuple[float, float, float]:

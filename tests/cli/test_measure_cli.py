@@ -333,14 +333,16 @@ def test_oversampled_frames_are_measured_reduced_and_reported_in_their_own_pixel
     assert read_measurements(out).meta["sigma_px"] == pytest.approx(0.7)
 
 
-def test_interlaced_frames_are_warned_about_and_measured_one_field(case, tmp_path):
+def test_interlaced_frames_are_measured_one_field(case, tmp_path):
     """Interlaced frames built so that their first field is exactly the sequence (960 x 540 would be the frame:
     here 480 x 540, rows 0, 2, ... the sequence's frame, rows 1, 3, ... the same view moved 3 px sideways, a second
     instant as an interlaced camera records a fast pan; the rig's cameras with twice the vertical focal length and
-    principal point). measure warns that they look interlaced (combing ratio above 1 in --json; the sequence as it
-    is reads below 1) and names --fields. With --fields first (and the same region of interest, row-doubled) it
-    measures exactly the sequence: the same positions as the progressive run, bit for bit, and its pixel rows
-    mapped to the full frames (v = 2 v_field). (--fields with --dense: tests/cli/test_measure_endoscope.py.)"""
+    principal point). By default (--fields auto) measure sees that they look interlaced (combing ratio above 1
+    in --json; the sequence as it is reads below 1), says so, and measures their first field: exactly the sequence
+    (with the same region of interest, row-doubled), the same positions as the progressive run, bit for bit, its
+    pixel rows mapped to the full frames (v = 2 v_field); --fields first does the same without the warning, and
+    --fields none measures the whole frames with a warning naming --fields first. (--fields with --dense:
+    tests/cli/test_measure_endoscope.py.)"""
     import cv2
 
     from heartcv.camera import Camera
@@ -375,17 +377,20 @@ def test_interlaced_frames_are_warned_about_and_measured_one_field(case, tmp_pat
     write_rig(tmp_path / "rig2.yaml", type(rig)(tall))
     out = tmp_path / "w.npz"
     args = ("--json", "--mask", tmp_path / "mask2.png")
-    res = _measure(case, *args, seq=woven, rig=tmp_path / "rig2.yaml", out=out)
+    for extra, warned in (((), "measuring the first field"), (("--fields", "first"), None)):
+        res = _measure(case, *args, *extra, seq=woven, rig=tmp_path / "rig2.yaml", out=out)
+        assert res.exit_code == 0, res.output
+        s = json.loads(res.stdout)
+        assert s["combing_ratio"] > 1.0 and s["fields"] == "first"
+        assert (warned in res.stderr) if warned else "look interlaced" not in res.stderr, res.stderr
+        m = read_measurements(out)
+        np.testing.assert_array_equal(m.positions, ref.positions)
+        np.testing.assert_array_equal(m.point_ids, ref.point_ids)
+        uv, uv_ref = np.array(m.meta["reference_uv"]), np.array(ref.meta["reference_uv"])
+        np.testing.assert_allclose(uv, uv_ref * [1.0, 2.0], atol=1e-3)     # float32 pixel positions
+        out.unlink()
+    res = _measure(case, *args, "--fields", "none", seq=woven, rig=tmp_path / "rig2.yaml", out=out)
     assert res.exit_code == 0, res.output
-    assert json.loads(res.stdout)["combing_ratio"] > 1.0
+    assert json.loads(res.stdout)["fields"] is None
     assert "look interlaced" in res.stderr and "--fields first" in res.stderr, res.stderr
-    out.unlink()
-    res = _measure(case, *args, "--fields", "first", seq=woven, rig=tmp_path / "rig2.yaml", out=out)
-    assert res.exit_code == 0, res.output
-    s = json.loads(res.stdout)
-    assert s["fields"] == "first" and "look interlaced" not in res.stderr
-    m = read_measurements(out)
-    np.testing.assert_array_equal(m.positions, ref.positions)
-    np.testing.assert_array_equal(m.point_ids, ref.point_ids)
-    uv, uv_ref = np.array(m.meta["reference_uv"]), np.array(ref.meta["reference_uv"])
-    np.testing.assert_allclose(uv, uv_ref * [1.0, 2.0], atol=1e-3)     # float32 pixel positions
+    assert read_measurements(out).positions.shape != ref.positions.shape      # other tracks, from combed frames

@@ -143,10 +143,11 @@ def test_dense_and_overlay(pair, tmp_path):
 def test_dense_measures_one_field_of_interlaced_frames(pair, tmp_path):
     """--dense --fields: frames woven from the pair (rows 0, 2, ... the pair's images; rows 1, 3, ... the same views
     moved 3 px sideways, a second instant), with a rig of twice the rows (vertical focal length and principal point
-    doubled). Without --fields the dense mode warns that they look interlaced (combing ratio above 1; the pair as it
-    is reads below 1). With --fields first it measures exactly the pair: the same positions and covariances as the
-    dense run on the pair, bit for bit, its pixel rows mapped to the full frames (v = 2 v_field) and its pixel
-    sigma times sqrt 2; --fields second measures the other instant (the plane 30 mm away)."""
+    doubled). With --fields none the dense mode warns that they look interlaced (combing ratio above 1; the pair as
+    it is reads below 1). With --fields first, and by default (auto, with a warning), it measures exactly the pair:
+    the same positions and covariances as the dense run on the pair, bit for bit, its pixel rows mapped to the full
+    frames (v = 2 v_field) and its pixel sigma times sqrt 2; --fields second measures the other instant (the plane
+    30 mm away)."""
     import cv2
 
     from heartcv.camera import Camera
@@ -178,20 +179,22 @@ def test_dense_measures_one_field_of_interlaced_frames(pair, tmp_path):
         tall.append(Camera(c.name, c.width, 2 * c.height, K, c.dist, c.cam_from_rig))
     write_rig(tmp_path / "tall.yaml", type(rig)(tall))
     args = ("--dense", "--mask", tmp_path / "mask2.png")
-    res, _ = _measure(pair, tmp_path / "w", *args, seq=woven, rig=tmp_path / "tall.yaml")
+    res, _ = _measure(pair, tmp_path / "w", *args, "--fields", "none", seq=woven, rig=tmp_path / "tall.yaml")
     assert res.exit_code == 0, res.output
-    assert json.loads(res.stdout)["combing_ratio"] > 1.0
+    assert json.loads(res.stdout)["combing_ratio"] > 1.0 and json.loads(res.stdout)["fields"] is None
     assert "look interlaced" in res.stderr and "--fields first" in res.stderr, res.stderr
-    res, out = _measure(pair, tmp_path / "f", *args, "--fields", "first", seq=woven, rig=tmp_path / "tall.yaml")
-    assert res.exit_code == 0, res.output
-    s = json.loads(res.stdout)
-    assert s["fields"] == "first" and "look interlaced" not in res.stderr
-    assert s["sigma_px"] == pytest.approx(s_native["sigma_px"] * np.sqrt(2), rel=1e-9)
-    m = read_measurements(out)
-    np.testing.assert_array_equal(m.positions, ref.positions)
-    np.testing.assert_array_equal(m.covariances, ref.covariances)
-    np.testing.assert_allclose(np.array(m.meta["reference_uv"]), np.array(ref.meta["reference_uv"]) * [1.0, 2.0],
-                               atol=1e-3)
+    for extra, warned in (((), "measuring the first field"), (("--fields", "first"), None)):
+        res, out = _measure(pair, tmp_path / f"f{len(extra)}", *args, *extra, seq=woven, rig=tmp_path / "tall.yaml")
+        assert res.exit_code == 0, res.output
+        s = json.loads(res.stdout)
+        assert s["fields"] == "first"
+        assert (warned in res.stderr) if warned else "look interlaced" not in res.stderr, res.stderr
+        assert s["sigma_px"] == pytest.approx(s_native["sigma_px"] * np.sqrt(2), rel=1e-9)
+        m = read_measurements(out)
+        np.testing.assert_array_equal(m.positions, ref.positions)
+        np.testing.assert_array_equal(m.covariances, ref.covariances)
+        np.testing.assert_allclose(np.array(m.meta["reference_uv"]),
+                                   np.array(ref.meta["reference_uv"]) * [1.0, 2.0], atol=1e-3)
     res, out = _measure(pair, tmp_path / "s", *args, "--fields", "second", seq=woven, rig=tmp_path / "tall.yaml")
     assert res.exit_code == 0, res.output
     m2 = read_measurements(out)

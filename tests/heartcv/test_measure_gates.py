@@ -323,3 +323,30 @@ def test_field_camera_sees_what_the_field_shows():
         assert fc.height == field_image(img, f).shape[0] == len(range(f, 601, 2)) and fc.width == 800
         np.testing.assert_allclose(fc.project(X), np.column_stack([uv[:, 0], (uv[:, 1] - f) / 2]), atol=1e-9)
         np.testing.assert_array_equal(field_image(img, f), img[f::2])
+
+
+def test_auto_field_takes_the_first_field_of_combed_frames_only():
+    """auto_field: frames woven from two instants of a moving texture (combing ratio above 1) get the first field
+    (0); the progressive frames, white noise (its ratio 1 within 1 %, just under it here) and a flat image (NaN) get
+    the whole frames (None)."""
+    import cv2
+
+    from heartcv.measure import COMBING_RATIO, auto_field, frames_combing_ratio
+
+    rng = np.random.default_rng(8)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (200, 260)).astype(np.float32), (0, 0), 2.0)
+    prog = [np.clip(np.roll(tex, k, axis=1), 0, 255).astype(np.uint8)[:, :240] for k in range(4)]
+    woven = []
+    for im in prog:
+        w = im.copy()
+        w[1::2] = np.roll(im, 4, axis=1)[1::2]                  # the second field 4 px later
+        woven.append(w)
+    field, ratio = auto_field(woven)
+    assert field == 0 and ratio > COMBING_RATIO and ratio == frames_combing_ratio(woven)
+    assert auto_field(prog)[0] is None and auto_field(prog)[1] < COMBING_RATIO
+    noise = [rng.normal(128, 20, (200, 240)).clip(0, 255).astype(np.uint8) for _ in range(9)]
+    field, ratio = auto_field(noise)                          # white noise sits at the threshold (0.997 here)
+    assert abs(ratio - 1.0) < 0.01 and field is None
+    flat = [np.full((50, 60), 90, np.uint8)]
+    field, ratio = auto_field(flat)
+    assert field is None and np.isnan(ratio)
