@@ -14,7 +14,7 @@ others are not used):
    ``cv2.initUndistortRectifyMap``). For a rig that is already rectified (no distortion, equal intrinsics, the
    partner displaced along the reference camera's x axis) this is the identity to 1e-3 px, which is checked, and
    the remapping is skipped. Vertical baselines are not supported. ``stereoRectify``'s focal length is the
-   cameras' mean fy; for pixels wider than tall (fy < fx: one field of interlaced video) the rectified images get
+   cameras' mean fy; for pixels taller than wide (fy < fx: one field of interlaced video) the rectified images get
    ``round(H mean fx / mean fy)`` rows instead, so that it is the mean fx and the columns keep their resolution.
 2. *Disparity*: semi-global matching ([SGM]; ``cv2.StereoSGBM``, 3-way mode by default, ``P1 = 8 b^2``,
    ``P2 = 32 b^2`` for blocks of b x b pixels, OpenCV's speckle filter) from the left image to the right one and,
@@ -267,7 +267,7 @@ class StereoPair:
     ref, other : int                 indices of the reference camera and its partner
     width, height : int              the original images' size (px)
     rect_width, rect_height : int    the rectified images' size (px): the original size, except for cameras whose
-                                     pixels are wider than tall (fy < fx: one field of interlaced video), whose
+                                     pixels are taller than wide (fy < fx: one field of interlaced video), whose
                                      rows are resampled so that ``f`` is fx, the horizontal resolution
     f, cx, cy : float                rectified focal length and principal point (px), the same in both rectified
                                      cameras (zero disparity at infinity)
@@ -326,8 +326,8 @@ class StereoPair:
             raise ValueError(f"cameras {a.name} and {b.name}: the image sizes differ ({a.width}x{a.height}, "
                              f"{b.width}x{b.height}); dense matching needs equal sizes")
         W, H = a.width, a.height
-        # stereoRectify's focal length is the cameras' mean fy times (rectified rows / rows): for pixels narrower
-        # than tall (fy < fx: one field of interlaced video) the rows are resampled so that it is their mean fx,
+        # stereoRectify's focal length is the cameras' mean fy times (rectified rows / rows): for pixels taller
+        # than wide (fy < fx: one field of interlaced video) the rows are resampled so that it is their mean fx,
         # the resolution along the disparity (else the columns would be squeezed, half the image black for a field)
         Hr = max(H, int(round(H * (a.K[0, 0] + b.K[0, 0]) / (a.K[1, 1] + b.K[1, 1]))))
         T = b.cam_from_rig @ invert_pose(a.cam_from_rig)                      # other_from_ref
