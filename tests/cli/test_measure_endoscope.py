@@ -68,6 +68,17 @@ def _measure(pair, tmp_path, *extra, seq=None, rig=None):
     return res, out
 
 
+def _measure_and_fit(seq, rig, tmp_path):
+    """``measure SEQ --fps 25`` then ``fit`` with the in-vivo model over the first 100 frames: (measurement file,
+    parameters file, fit's --json summary)."""
+    meas = tmp_path / "m.npz"
+    assert _run("measure", seq, "--rig", rig, "-o", meas, "--fps", "25").exit_code == 0
+    params = tmp_path / "p.yaml"
+    res = _run("fit", meas, "--model", SAMPLES / "invivo" / "model.yaml", "-o", params, "--frames", "100", "--json")
+    assert res.exit_code == 0, res.output
+    return meas, params, json.loads(res.stdout)
+
+
 def test_a_rig_in_millimetres_exit_2(pair, tmp_path):
     res = _run("rig", "rectified", "--image-size", f"{W}x{H}", "--focal-px", "390", "--baseline-m", "5.5", "-o",
                tmp_path / "mm.yaml")
@@ -320,12 +331,7 @@ def test_invivo_fit_without_pressure(invivo_rig, tmp_path):
     300 frames, no refinement) of the whole sequence (measured: 0.869 vs 0.870 Hz); the patch is a few cm."""
     from heartcv.tracker.io import read_measurements, read_parameters
 
-    meas = tmp_path / "m.npz"
-    assert _run("measure", INVIVO, "--rig", invivo_rig, "-o", meas, "--fps", "25").exit_code == 0
-    params = tmp_path / "p.yaml"
-    res = _run("fit", meas, "--model", SAMPLES / "invivo" / "model.yaml", "-o", params, "--frames", "100", "--json")
-    assert res.exit_code == 0, res.output
-    s = json.loads(res.stdout)
+    meas, params, s = _measure_and_fit(INVIVO, invivo_rig, tmp_path)
     m = read_measurements(meas)
     full = np.isfinite(m.positions[..., 0]).all(axis=0)
     y = m.positions[:, full].reshape(m.n_frames, -1)
@@ -370,12 +376,7 @@ def test_invivo_heart_played_twice_as_fast_is_not_refused(invivo_rig, tmp_path):
         (fast / cam).mkdir(parents=True)
         for k in range(0, 300, 2):
             (fast / cam / f"{k // 2:06d}.png").symlink_to(INVIVO / cam / f"{k:06d}.png")
-    meas = tmp_path / "m.npz"
-    assert _run("measure", fast, "--rig", invivo_rig, "-o", meas, "--fps", "25").exit_code == 0
-    params = tmp_path / "p.yaml"
-    res = _run("fit", meas, "--model", SAMPLES / "invivo" / "model.yaml", "-o", params, "--frames", "100", "--json")
-    assert res.exit_code == 0, res.output
-    s = json.loads(res.stdout)
+    meas, params, s = _measure_and_fit(fast, invivo_rig, tmp_path)
     from heartcv.tracker.io import read_measurements, read_parameters
 
     hr = read_parameters(params).estimated_input["heart_rate"]
