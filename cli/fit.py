@@ -50,6 +50,10 @@ MAX_STARTS = 1000
               help="The model's pressure: 'recorded' from the measurement file; 'estimate' from the tracks (heart "
                    "rate from their spectrum, the input's harmonics and a rigid motion fitted); 'auto': estimate "
                    "when the file has no pressure column.")
+@click.option("--heart-rate-hz", type=Float(0, 1e6, lo_open=True), default=None, metavar="HZ",
+              help="An estimated input's heart rate, known otherwise (an ECG, the monitor), in Hz (0.5-4, i.e. "
+                   "30-240 bpm): used as given instead of the tracks' spectrum, and without its tests of a "
+                   "heartbeat (default: from the tracks' spectrum).")
 @click.option("--harmonics", type=Int(1, 10), default=None,
               help="Harmonics of the heart rate in an estimated input (default 6).")
 @click.option("--respiration", type=click.Choice(("auto", "none")), default="auto", show_default=True,
@@ -79,8 +83,8 @@ MAX_STARTS = 1000
                    "file's patch (an endoscope's view), else 'model' with the dominant deformation of the first "
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
-def fit(measurements, model_file, output, frames, duration, starts, seed, max_evaluations, input_mode, harmonics,
-        respiration, rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
+def fit(measurements, model_file, output, frames, duration, starts, seed, max_evaluations, input_mode, heart_rate_hz,
+        harmonics, respiration, rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -95,7 +99,7 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
     from heartcv.tracker.fit import fit as run_fit
     from heartcv.tracker.io import file_hash, read_measurements, write_parameters
     from heartcv.tracker.measurements import frames_within
-    from heartcv.tracker.unknown_input import HARMONICS
+    from heartcv.tracker.unknown_input import BAND_HZ, HARMONICS
 
     if Path(output).suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
@@ -114,6 +118,11 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
     if not m.config.estimation.estimate:
         raise BadInput(f"{model_file}: estimation.estimate is empty; nothing to fit")
     estimate_input = _input_mode(input_mode, meas, m, measurements)
+    if heart_rate_hz is not None and not estimate_input:
+        raise BadInput("--heart-rate-hz applies to an estimated input (--input estimate) only")
+    if heart_rate_hz is not None and not BAND_HZ[0] <= heart_rate_hz <= BAND_HZ[1]:
+        raise BadInput(f"--heart-rate-hz {heart_rate_hz:g}: {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz expected "
+                       f"({60 * BAND_HZ[0]:g}-{60 * BAND_HZ[1]:g} bpm)")
     if harmonics is not None and not estimate_input:
         raise BadInput("--harmonics applies to an estimated input (--input estimate) only")
     if rigid_ar != "auto" and not estimate_input:
@@ -138,7 +147,8 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
                                                               None if rigid_ar == "auto" else
                                                               0 if rigid_ar == "none" else int(rigid_ar),
                                                               None if field_degree is None
-                                                              else int(field_degree), rigid_harmonics)
+                                                              else int(field_degree), rigid_harmonics,
+                                                              heart_rate_hz)
             else:
                 result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
                                  max_evaluations=max_evaluations)
@@ -242,10 +252,10 @@ def _observed_patch(rig_meas, m, output):
 
 
 def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True,
-                       rigid_ar_order=None, field_degree=None, rigid_harmonics=None):
-    """The fit with an estimated input (heart rate from the tracks, harmonics and rigid motion profiled; the
-    respiration rate from the rigid motion when ``respiration`` and one is seen): ``(FitResult, estimated_input
-    entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
+                       rigid_ar_order=None, field_degree=None, rigid_harmonics=None, heart_rate_hz=None):
+    """The fit with an estimated input (heart rate from the tracks, or ``heart_rate_hz`` as given; harmonics and
+    rigid motion profiled; the respiration rate from the rigid motion when ``respiration`` and one is seen):
+    ``(FitResult, estimated_input entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
     from dataclasses import replace as dc_replace
 
     import numpy as np
@@ -258,10 +268,12 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
         HARMONICS,
         PEAK_PROMINENCE,
         NoHeartbeat,
+        NotProminent,
         Respiration,
         estimate_heart_rate,
         estimate_respiration,
         harmonics_below_nyquist,
+        heart_rate_at,
         input_block_from_fit,
     )
 
@@ -269,12 +281,23 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     field_degree = FIELD_DEGREE if field_degree is None else int(field_degree)
     K = meas.n_frames if frames is None else min(frames, meas.n_frames)
     try:
-        hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H)
+        if heart_rate_hz is None:
+            hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H, prominent=True)
+        else:
+            hr = heart_rate_at(meas.times[:K], meas.positions[:K], heart_rate_hz)
+    except NotProminent as exc:
+        raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written (if the recording does "
+                          "show a heartbeat, give its rate with --heart-rate-hz)") from None
     except NoHeartbeat as exc:
         raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written") from None
-    log.info("heart rate %.4g ± %.2g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's "
-             "median, %.0fx the power between its harmonics and %.2gx its surroundings", hr.frequency_hz, hr.std_hz,
-             60 * hr.frequency_hz, hr.beats, hr.peak_ratio, hr.background_ratio, hr.prominence)
+    if heart_rate_hz is None:
+        log.info("heart rate %.4g ± %.2g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's "
+                 "median, %.0fx the power between its harmonics and %.2gx its surroundings", hr.frequency_hz,
+                 hr.std_hz, 60 * hr.frequency_hz, hr.beats, hr.peak_ratio, hr.background_ratio, hr.prominence)
+    else:
+        log.info("heart rate %.4g Hz (%.1f bpm) as given (--heart-rate-hz): %.1f beats; the tracks' spectrum there "
+                 "%.2gx the band's median, %.2gx the power between its harmonics and %.2gx its surroundings",
+                 hr.frequency_hz, 60 * hr.frequency_hz, hr.beats, hr.peak_ratio, hr.background_ratio, hr.prominence)
     dt = float(np.median(np.diff(meas.times[:K])))
     resolved = harmonics_below_nyquist(hr.frequency_hz, dt, H, hr.std_hz)
     if resolved < H:
@@ -282,11 +305,10 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                     "of %.3g frames per second: %d harmonics used", H, hr.frequency_hz, 0.5 / dt, 1.0 / dt, resolved)
         H = resolved
         rigid_harmonics = None if rigid_harmonics is None else min(rigid_harmonics, H)
-    if hr.prominence < PEAK_PROMINENCE:
-        log.warning("the tracks' spectral peak at %.3g Hz stands only %.2gx above their spectrum at half and one and "
-                    "a half times that frequency (a heartbeat: %gx and more): it may be drift, not a heartbeat; "
-                    "check the windowed heart rates of `heartcv report --measurements` (docs/model.md 17)",
-                    hr.peak_hz, hr.prominence, PEAK_PROMINENCE)
+    if heart_rate_hz is not None and not hr.prominence >= PEAK_PROMINENCE:
+        log.warning("the tracks' spectrum at the given heart rate %.3g Hz stands %.2gx above its values at half and "
+                    "one and a half times that frequency (a heartbeat's peak: %gx and more): the tracks do not show "
+                    "this rate clearly", hr.frequency_hz, hr.prominence, PEAK_PROMINENCE)
     cfg = m.config
     held = [n for n in cfg.estimation.estimate if n == "E"]
     fit_model = m
@@ -326,8 +348,9 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
              + (how if rigid_ar_order is None else ""), block.rigid_harmonics)
     entry = block.to_dict()
     entry.update(heart_rate={"frequency_hz": hr.frequency_hz, "std_hz": hr.std_hz, "bpm": 60 * hr.frequency_hz,
+                             "source": "spectrum" if heart_rate_hz is None else "given",
                              "peak_hz": hr.peak_hz,
-                             "peak_ratio": hr.peak_ratio,
+                             "peak_ratio": hr.peak_ratio if math.isfinite(hr.peak_ratio) else None,
                              "peak_prominence": hr.prominence if math.isfinite(hr.prominence) else None,
                              "peak_background_ratio": hr.background_ratio if math.isfinite(hr.background_ratio)
                              else None,
@@ -369,6 +392,8 @@ def _summary(result, output) -> dict:
         "registration_rms_m": None if result.registration is None else result.registration["rms_m"],
         "patch": None if result.registration is None else result.registration.get("patch"),
         "heart_rate_hz": None if result.estimated_input is None else result.estimated_input["frequency_hz"],
+        "heart_rate_source": None if result.estimated_input is None
+        else (result.estimated_input.get("heart_rate") or {}).get("source", "spectrum"),
         "heart_rate_peak_prominence": None if result.estimated_input is None
         else (result.estimated_input.get("heart_rate") or {}).get("peak_prominence"),
         "input_amplitudes_pa": None if result.estimated_input is None else result.estimated_input["amplitudes_pa"],

@@ -351,9 +351,10 @@ def _fitted_heart_rate(fitted) -> dict:
         return {}
     hr = entry.get("heart_rate") if isinstance(entry.get("heart_rate"), dict) else {}
     std = hr.get("std_hz")
+    how = "given: --heart-rate-hz" if hr.get("source") == "given" else "the tracks' spectrum"
     out = {"heart_rate_hz": float(entry["frequency_hz"]),
            "heart_rate_std_hz": float(std) if isinstance(std, (int, float)) else None,
-           "heart_rate_source": "parameters file (heartcv fit, the tracks' spectrum)"}
+           "heart_rate_source": f"parameters file (heartcv fit, {how})"}
     resp = entry.get("respiration") if isinstance(entry.get("respiration"), dict) else {}
     if isinstance(resp.get("frequency_hz"), (int, float)):
         rstd = resp.get("std_hz")

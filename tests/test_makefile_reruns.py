@@ -100,6 +100,10 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     assert _stages(calls) == sorted(AFTER_MEASURE) and _arg(calls, "fit", "--duration") == "6"
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FPS=50", "IV_FIT_FRAMES=120")
     assert _arg(calls, "fit", "--frames") == "120" and "--duration" not in next(c for c in calls if c[0] == "fit")
+    # extra options of fit (a heart rate known otherwise): both fits take them, the measurement is kept
+    calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FPS=50", "IV_FIT_FRAMES=120", "IV_FIT=--heart-rate-hz 1.2")
+    assert _stages(calls) == sorted(AFTER_MEASURE), calls
+    assert [_arg([c], "fit", "--heart-rate-hz") for c in calls if c[0] == "fit"] == ["1.2", "1.2"]
     # the rig's geometry: the rig and everything after it
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400")
     assert _stages(calls) == sorted(ALL), calls

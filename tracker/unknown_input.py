@@ -36,7 +36,7 @@ import numpy as np
 __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
            "DRIFT_PER_SQRT_S", "PEAK_RATIO", "PEAK_PROMINENCE", "BAND_HZ", "filled_tracks", "spectral_peak",
            "harmonic_background_ratio", "periodic_peak", "harmonics_below_nyquist",
-           "peak_prominence",
+           "peak_prominence", "NotProminent", "heart_rate_at",
            "fit_harmonics", "input_block_from_fit", "extend_observation",
            "extend_prior", "extend_noise", "extend_transition", "prior_input", "known_inputs", "RatePrior",
            "RATE_WALK_PER_SQRT_S", "RATE_PRIOR_MIN", "Respiration", "estimate_respiration", "respiration_prior",
@@ -62,8 +62,10 @@ heart played twice as fast reads 5.2 against the band's median)."""
 
 PEAK_PROMINENCE = 2.0
 """A heartbeat's spectral peak stands at least this many times above the spectrum half its frequency below and
-above it (:func:`peak_prominence`); below, ``heartcv fit`` warns that the peak may be drift. Not a refusal: a real
-heart's short window can come close (the in-vivo heart's 2.4-s window: 2.1; its 4-s and 6-s windows 2.7-12)."""
+above it (:func:`peak_prominence`; a power-law spectrum, drift, gives at most 1 in expectation). Below it
+``heartcv fit`` refuses the rate (:class:`NotProminent`; a rate known otherwise is given with ``--heart-rate-hz``)
+and ``heartcv report`` flags the window. A real heart's short window can come close (the in-vivo heart's 2.4-s
+window: 2.1; its 4-s and 6-s windows 2.7-12)."""
 
 BAND_HZ = (0.5, 4.0)
 """Heart rates searched (30-240 bpm)."""
@@ -92,6 +94,12 @@ random walk (a drifting view) often gives more (median 0.62 over 12 s), but its 
 
 class NoHeartbeat(ValueError):
     """The tracks show no heartbeat: too short (fewer than :data:`MIN_BEATS` beats) or no periodic motion."""
+
+
+class NotProminent(NoHeartbeat):
+    """The tracks' spectral peak passes the periodicity tests but is not :data:`PEAK_PROMINENCE` prominent: the
+    falling spectrum of drift, not a heartbeat, as far as the spectrum tells (:func:`estimate_heart_rate` with
+    ``prominent``)."""
 
 
 @dataclass(frozen=True)
@@ -303,7 +311,8 @@ def _harmonic_rss(t, s, f, harmonics):
     return float(np.sum(r * r))
 
 
-def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_HZ) -> HeartRate:
+def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_HZ, *,
+                        prominent: bool = False) -> HeartRate:
     """The heart rate of tracked points (K, P, 3 with NaN where unseen): spectral peak, then refined.
 
     The peak of the summed Hann-windowed power spectrum of every point's detrended coordinates in ``band``
@@ -317,6 +326,10 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
         Fewer than 8 frames or no track seen in 90 % of them; shorter than :data:`MIN_BEATS` beats at the found
         rate (or at the band's upper end); no peak :data:`PEAK_RATIO` times the band's median power, nor one
         :data:`PEAK_RATIO` times the power between its harmonics and :data:`PEAK_PROMINENCE` prominent.
+    NotProminent
+        With ``prominent``: a peak that passes those tests but is less than :data:`PEAK_PROMINENCE` prominent
+        (drift's falling spectrum passes the band-median test in most draws; its peak at the band's low end is
+        seldom prominent). A NaN prominence (``1.5 peak`` beyond the Nyquist frequency) is not refused.
     """
     from scipy.optimize import minimize_scalar
 
@@ -345,6 +358,11 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
                           f"its harmonics, with a prominence of {prominence:.3g} (a heartbeat gives more than "
                           f"{PEAK_RATIO:g} times the band's median, or {PEAK_RATIO:g} times the power between its "
                           f"harmonics with a prominence above {PEAK_PROMINENCE:g})")
+    if prominent and prominence < PEAK_PROMINENCE:
+        raise NotProminent(f"no periodic motion: the tracks' largest spectral peak in {lo:g}-{hi:g} Hz, at "
+                           f"{peak:.3g} Hz, stands only {prominence:.2g} times above their spectrum at half and one "
+                           f"and a half times its frequency (a heartbeat: {PEAK_PROMINENCE:g} times and more): the "
+                           f"falling spectrum of drift, not a heartbeat")
     # the dominant motion signal: first principal component of the tracks
     U, S, _ = np.linalg.svd(Y - Y.mean(axis=0), full_matrices=False)
     s = U[:, 0] * S[0]
@@ -357,6 +375,43 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
                           f"at least {MIN_BEATS:g} are needed")
     return HeartRate(float(res.x), peak, ratio, beats, int(n_points), _frequency_std(tt, s, float(res.x), harmonics),
                      prominence, background)
+
+
+def heart_rate_at(times, positions, frequency_hz: float, band=BAND_HZ) -> HeartRate:
+    """A heart rate known from elsewhere (an ECG, the monitor), for tracked points (K, P, 3 with NaN where unseen):
+    ``frequency_hz`` as it is (``std_hz`` 0, ``peak_hz`` the same), with what the tracks' spectrum shows at it for
+    the record (``peak_ratio``: its power over the band's median; ``prominence``, ``background_ratio``), however
+    small. No periodicity test; the recording must still hold :data:`MIN_BEATS` beats at the rate.
+
+    Raises
+    ------
+    ValueError
+        ``frequency_hz`` outside ``band``.
+    NoHeartbeat
+        Fewer than 8 frames, no track seen in 90 % of them, or fewer than :data:`MIN_BEATS` beats at the rate.
+    """
+    t = np.asarray(times, float)
+    K = t.size
+    lo, hi = band
+    f = float(frequency_hz)
+    if not (math.isfinite(f) and lo <= f <= hi):
+        raise ValueError(f"heart rate: {lo:g}-{hi:g} Hz expected, got {frequency_hz}")
+    if K < 8:
+        raise NoHeartbeat(f"{K} frames: too short to show a heartbeat")
+    dt = float(np.median(np.diff(t)))
+    beats = K * dt * f
+    if beats < MIN_BEATS - 1e-9:
+        raise NoHeartbeat(f"{K * dt:.3g} s holds {beats:.2g} heartbeats at the heart rate {f:.4g} Hz: at least "
+                          f"{MIN_BEATS:g} are needed")
+    Y, n_points = filled_tracks(t, positions)
+    if n_points == 0:
+        raise NoHeartbeat("no track is seen in 90 % of the frames: no motion signal to fit a heartbeat to")
+    freqs, power = _power_spectrum(Y, dt)
+    band_idx = (freqs >= lo) & (freqs <= hi)
+    median = float(np.median(power[band_idx])) if band_idx.sum() >= 3 else float("nan")
+    ratio = float(np.interp(f, freqs, power) / median) if median > 0 else float("nan")
+    return HeartRate(f, f, ratio, float(beats), int(n_points), 0.0, peak_prominence(Y, dt, f),
+                     harmonic_background_ratio(Y, dt, f))
 
 
 def _frequency_std(t, s, f, harmonics) -> float:

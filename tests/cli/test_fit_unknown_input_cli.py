@@ -194,9 +194,11 @@ def test_fit_exits_1_without_a_heartbeat(tmp_path, blind_file):
     assert not (tmp_path / "p.yaml").exists()
 
 
-def test_fit_warns_when_the_peak_may_be_drift(tmp_path, blind_file):
+def test_fit_exits_1_on_drift_unless_a_heart_rate_is_given(tmp_path, blind_file):
     """Tracks that drift (random walks, no heartbeat) can pass the band-median test; when their peak is not
-    prominent (tracker.unknown_input.peak_prominence) fit says it may be drift, whatever the fit then does."""
+    prominent (tracker.unknown_input.peak_prominence) fit exits 1 saying so, writes nothing, and names
+    --heart-rate-hz; with a rate given the tests of a heartbeat are not made, and fit says that the tracks do not
+    show the rate clearly."""
     from heartcv.tracker.unknown_input import NoHeartbeat, estimate_heart_rate
 
     m = read_measurements(blind_file)
@@ -214,9 +216,54 @@ def test_fit_warns_when_the_peak_may_be_drift(tmp_path, blind_file):
         pytest.fail("no drift of 40 passed the band-median test with a peak that is not prominent")
     drift = str(tmp_path / "drift.npz")
     write_measurements(drift, dataclasses.replace(m, positions=positions))
-    res = CliRunner().invoke(main, ["fit", drift, "--model", PAPER, "-o", str(tmp_path / "p.yaml")])
-    assert res.exit_code in (0, 1) and "Traceback" not in res.output, res.output
-    assert "may be drift, not a heartbeat" in res.output, res.output
+    out = tmp_path / "p.yaml"
+    res = CliRunner().invoke(main, ["fit", drift, "--model", PAPER, "-o", str(out)])
+    assert res.exit_code == 1 and "Traceback" not in res.output, res.output
+    assert "drift, not a heartbeat" in res.output and "--heart-rate-hz" in res.output, res.output
+    assert not out.exists()
+    res = CliRunner().invoke(main, ["fit", drift, "--model", PAPER, "-o", str(out), "--heart-rate-hz", "1.0"])
+    assert "Traceback" not in res.output and "do not show this rate clearly" in res.output, res.output
+    assert "drift, not a heartbeat" not in res.output, res.output
+
+
+def test_a_given_heart_rate_is_used_as_given(tmp_path, blind_file):
+    """--heart-rate-hz: the parameters file holds the rate exactly, its source 'given' and a standard error of 0;
+    the tracks' spectrum at it is recorded (the blind paper patch at its true 60 bpm: prominent). Given the rate the
+    spectrum finds (to the printed digits), the fit's nu is the spectrum run's within its standard error; track
+    names the source. Out of 0.5-4 Hz, or with a recorded pressure, exit 2."""
+    spec = str(tmp_path / "spec.yaml")
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", spec, "--frames", "90", "--json"])
+    assert res.exit_code == 0, res.output
+    s0 = json.loads(res.stdout)
+    assert s0["heart_rate_source"] == "spectrum"
+    given = str(tmp_path / "given.yaml")
+    rate = f"{s0['heart_rate_hz']:.6f}"
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", given, "--frames", "90", "--json",
+                                    "--heart-rate-hz", rate])
+    assert res.exit_code == 0, res.output
+    s1 = json.loads(res.stdout)
+    hr = read_parameters(given).estimated_input["heart_rate"]
+    assert s1["heart_rate_hz"] == float(rate) == hr["frequency_hz"]
+    assert hr["source"] == "given" == s1["heart_rate_source"]
+    assert hr["std_hz"] == 0.0 and hr["peak_prominence"] > 2 * PEAK_PROMINENCE and "as given" in res.output
+    assert abs(s1["theta"]["nu"] - s0["theta"]["nu"]) < s0["theta_std"]["nu"], (s0["theta"], s1["theta"])
+    out = str(tmp_path / "kf.npz")
+    res = CliRunner().invoke(main, ["track", blind_file, "--model", PAPER, "--params", given, "--estimator", "kf",
+                                    "-o", out])
+    assert res.exit_code == 0, res.output
+    assert "given: --heart-rate-hz" in read_estimates(out).meta["heart_rate_source"]
+    for bad in ("4.5", "0.2"):
+        res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "x.yaml"),
+                                        "--heart-rate-hz", bad])
+        assert res.exit_code == 2 and "--heart-rate-hz" in res.output and "0.5-4 Hz" in res.output, res.output
+    with_pressure = str(tmp_path / "with_pressure.npz")
+    m = read_measurements(blind_file)
+    write_measurements(with_pressure, dataclasses.replace(m, inputs=np.ones((m.n_frames, 1)),
+                                                          input_names=("pressure",), input_units=("Pa",)))
+    res = CliRunner().invoke(main, ["fit", with_pressure, "--model", PAPER, "-o", str(tmp_path / "x.yaml"),
+                                    "--heart-rate-hz", "1.0"])
+    assert res.exit_code == 2 and "--heart-rate-hz applies to an estimated input" in res.output, res.output
+    assert not (tmp_path / "x.yaml").exists()
 
 
 def test_fit_exits_1_when_the_observed_patch_holds_too_few_points(tmp_path, monkeypatch):

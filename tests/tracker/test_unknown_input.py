@@ -22,9 +22,11 @@ from heartcv.tracker.unknown_input import (
     PEAK_RATIO,
     InputBlock,
     NoHeartbeat,
+    NotProminent,
     estimate_heart_rate,
     filled_tracks,
     harmonic_basis,
+    heart_rate_at,
     input_block_from_fit,
     peak_prominence,
 )
@@ -148,6 +150,62 @@ def test_heartbeat_prominent_drift_not():
             passed.append(hr.prominence)
         assert len(passed) >= 12 and second_way <= 2, (len(passed), second_way)
         assert np.mean(np.asarray(passed) < PEAK_PROMINENCE) >= 0.8, passed
+
+
+def test_prominent_refuses_drift_and_keeps_heartbeats():
+    """``estimate_heart_rate(..., prominent=True)`` (what ``heartcv fit`` uses) raises NotProminent exactly when the
+    peak passes the other tests but is less than PEAK_PROMINENCE prominent: on the drift draws of the test above,
+    every draw either raises NoHeartbeat with and without it, or passes without it and then raises NotProminent iff
+    its prominence is below the line (at least 80 % of them, measured 94 % and 86 %); heartbeats pass unchanged."""
+    for f in (0.87, 1.13, 2.4):
+        t, y = _tracks(f)
+        assert estimate_heart_rate(t, y, prominent=True) == estimate_heart_rate(t, y)
+    for K in (100, 250):
+        refused = passed = 0
+        for seed in range(40):
+            t, y = _drift(K, seed)
+            try:
+                hr = estimate_heart_rate(t, y)
+            except NoHeartbeat:
+                with pytest.raises(NoHeartbeat):
+                    estimate_heart_rate(t, y, prominent=True)
+                continue
+            passed += 1
+            if hr.prominence < PEAK_PROMINENCE:
+                with pytest.raises(NotProminent, match="not a heartbeat"):
+                    estimate_heart_rate(t, y, prominent=True)
+                refused += 1
+            else:
+                assert estimate_heart_rate(t, y, prominent=True) == hr
+        assert passed >= 12 and refused >= 0.8 * passed, (passed, refused)
+
+
+def test_heart_rate_at_a_given_rate():
+    """A rate given from elsewhere is used as it is (std 0), with what the spectrum shows there: for harmonic tracks
+    at 1.13 Hz, given 1.13 Hz the prominence equals peak_prominence of the filled tracks at 1.13 Hz (far above the
+    line) and the beats are K dt f; given 1.5 Hz (between the fundamental and its second harmonic) the prominence
+    is far below it. Too few beats at the rate, or a rate outside the band, is refused; drift that the spectrum
+    refuses is accepted at a given rate."""
+    t, y = _tracks(1.13)
+    hr = heart_rate_at(t, y, 1.13)
+    Y, n = filled_tracks(t, y)
+    assert hr.frequency_hz == hr.peak_hz == 1.13 and hr.std_hz == 0.0 and hr.points == n == 20
+    assert hr.prominence == pytest.approx(peak_prominence(Y, 0.04, 1.13), rel=1e-9) and hr.prominence > 50
+    assert hr.beats == pytest.approx(250 * 0.04 * 1.13)
+    assert heart_rate_at(t, y, 1.5).prominence < 0.1
+    with pytest.raises(NoHeartbeat, match="heartbeats"):
+        heart_rate_at(t[:40], y[:40], 1.13)                 # 1.6 s: 1.8 beats
+    with pytest.raises(ValueError, match="0.5-4 Hz"):
+        heart_rate_at(t, y, 4.5)
+    for seed in range(40):
+        td, yd = _drift(250, seed)
+        try:
+            estimate_heart_rate(td, yd, prominent=True)
+        except NotProminent:
+            assert heart_rate_at(td, yd, 1.0).frequency_hz == 1.0
+            break
+    else:
+        pytest.fail("no drift draw was refused as not prominent")
 
 
 def test_harmonic_background_ratio_closed_form():
