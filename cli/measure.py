@@ -50,7 +50,11 @@ MAX_WORKERS = 1024
               help="Shi-Tomasi structure-tensor block size (default: 7 px at 1080 rows, scaled, at least 3).")
 @click.option("--corner-quality", type=Float(0, 1, lo_open=True), default=0.01, show_default=True,
               help="Keep corners whose response is at least this fraction of the strongest.")
-@click.option("--frames", type=Int(1), default=None, help="Use only the first N frames (one instant is enough).")
+@click.option("--frames", type=Int(1), default=None,
+              help="Use only the first N frames (from --start; one instant is enough).")
+@click.option("--start", type=Int(0), default=0, show_default=True, metavar="FRAME",
+              help="Begin at this frame (0 the first): a segment of a long recording, with --frames its length. The "
+                   "segment keeps the recording's clock (its times, inputs and frame names).")
 @click.option("--dense", is_flag=True, default=False,
               help="Dense surface mode: semi-global stereo plus dense optical flow, thousands of points per frame "
                    "(two cameras: the reference and the widest baseline; heartcv.dense).")
@@ -105,7 +109,7 @@ MAX_WORKERS = 1024
 @json_opt
 @click.pass_context
 def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed, ref_camera, max_points, min_distance,
-            corner_block, corner_quality, frames, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
+            corner_block, corner_quality, frames, start, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
             max_depth_std, max_reprojection, min_angle, max_gap, window, no_specular, overlay_dir, overlay_video,
             backend, device, pixel_sigma, highpass, size_factor, fields, truth_file, csv_file, workers, as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
@@ -144,15 +148,22 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     if source.missing():
         log.info("%d camera images missing in %s (each is named when its frame is read)", len(source.missing()),
                  sequence)
+    recording = source
+    if start:
+        if start >= source.n_frames:
+            raise BadInput(f"--start {start}: {sequence} has {source.n_frames} frames (0 to {source.n_frames - 1})")
+        source = source.segment(start)
     count = source.n_frames if frames is None else min(frames, source.n_frames)
+    if start:
+        log.info("--start %d: frames %d to %d of %s", start, start, start + count - 1, sequence)
     if count < 1:
         raise BadInput(f"{sequence}: no frame")
     _check_sizes(source, rig, count, rig_file)
-    times = _frame_times(source, fps, count)
+    times = _frame_times(recording, fps, start + count)[start:]   # a segment keeps the recording's clock
     stamps = seq / "timestamps.csv" if fps is None and (seq / "timestamps.csv").is_file() else None
     in_names, in_units, in_values = _inputs(inputs_path, times, required=inputs_file is not None, times_from=stamps)
     roi = _mask(mask_file, rig.cameras[ref].size)
-    truth = _truth(truth_file, count, names)
+    truth = _truth(truth_file, count, names, source.start)
     be = _backend(backend, device)
     if dense:
         opts = _dense_options(ref, pixel_sigma)
@@ -293,7 +304,7 @@ def _mask(mask_file, size):
     return None if mask_file is None else read_mask(mask_file, size)
 
 
-def _truth(truth_file, count, names):
+def _truth(truth_file, count, names, start=0):
     from heartcv.evaluate import TRUTH_FOR_ERRORS
     from heartcv.io import read_render_truth
     from heartcv.measure_data import truth_for_frames
@@ -303,7 +314,7 @@ def _truth(truth_file, count, names):
         return None
     arrays, meta = read_render_truth(truth_file, require=TRUTH_FOR_ERRORS, what="the truth error of measure")
     try:
-        return truth_for_frames(arrays, meta, count, names)
+        return truth_for_frames(arrays, meta, count, names, start)
     except InputError as exc:
         raise exc.in_file(truth_file) from None
 
@@ -473,7 +484,8 @@ def _measurement_set(res, ref_cam, times, inputs, backend, source, count, ref, h
             "reference_frame_index": res.birth_frame.tolist(),
             "reference_uv": reference_pixels(res, ref_cam, ref).tolist(),
             "frame_names": list(source.frame_names[:count]), "highpass_sigma": highpass, "inputs_hash": hashes,
-            "sequence": str(source.folder)} | ({"packed": source.packing} if source.packing else {})
+            "sequence": str(source.folder), "start_frame": int(source.start)} \
+        | ({"packed": source.packing} if source.packing else {})
     return MeasurementSet(times=times, point_ids=res.point_ids, positions=res.positions, covariances=res.covariances,
                           reference=res.reference, inputs=in_values, input_names=in_names, input_units=in_units,
                           frame="rig", views=res.views, reprojection_rms=res.reprojection_rms, meta=meta)

@@ -16,7 +16,7 @@ append their own clearly delimited sections at the end.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import os
 from pathlib import Path
 import re
@@ -719,6 +719,8 @@ class FrameSource:
                                          None for image folders
     packing : str or None                one of :data:`PACKINGS` when every frame holds all the cameras' views
                                          (one image folder or one video, named in every camera's ``files``)
+    start : int                          the recording's index of instant 0 (a segment of it, :meth:`segment`;
+                                         frame ``k`` of a video is its decoded frame ``start + k``)
     """
 
     folder: Path
@@ -729,6 +731,20 @@ class FrameSource:
     fps: float | None = None
     videos: tuple | None = None
     packing: str | None = None
+    start: int = 0
+
+    def segment(self, start: int, count: int | None = None) -> "FrameSource":
+        """The instants ``start`` to ``start + count`` (default: to the end) of this source as a source of their
+        own: instant ``k`` of the segment is instant ``start + k`` of this one. ValueError when ``start`` is not
+        an instant of this source or ``count`` is below 1."""
+        start = int(start)
+        if not 0 <= start < self.n_frames:
+            raise ValueError(f"start: an instant in 0..{self.n_frames - 1} expected, got {start}")
+        end = self.n_frames if count is None else start + int(count)
+        if count is not None and int(count) < 1:
+            raise ValueError(f"count: at least 1 expected, got {count}")
+        files = tuple(tuple(f[start:end]) for f in self.files) if self.kind == "images" else self.files
+        return replace(self, frame_names=tuple(self.frame_names[start:end]), files=files, start=self.start + start)
 
     @property
     def n_frames(self) -> int:
@@ -924,6 +940,7 @@ class FrameReader:
 
     def _read_video(self, c, k):
         video = self._videos[c]
+        k = self.source.start + k
         try:
             img = video.read(k, gray=self.mode == "gray")
         except HeartcvIOError as exc:
@@ -951,6 +968,7 @@ class FrameReader:
             except HeartcvIOError as exc:
                 return None, str(exc)
         video = self._videos[0]
+        k = self.source.start + k
         try:
             img = video.read(k, gray=self.mode == "gray")
         except HeartcvIOError as exc:
@@ -962,7 +980,8 @@ class FrameReader:
         frame, problem = self.read_packed(k)
         if frame is None:
             return [None] * C, [problem]
-        where = self.source.files[0][k] if self.source.kind == "images" else f"{self.source.files[0][0]}: frame {k}"
+        where = self.source.files[0][k] if self.source.kind == "images" else \
+            f"{self.source.files[0][0]}: frame {self.source.start + k}"
         try:
             views = unpack_views(frame, self.source.packing, C)
         except ValueError as exc:

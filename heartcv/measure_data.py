@@ -121,9 +121,9 @@ def check_image_sizes(cameras, read, count: int, locate, rig_name: str = "the ri
 
 
 # -- truth ------------------------------------------------------------------------------------------------------------
-def truth_for_frames(arrays: dict, meta: dict, count: int, names) -> dict:
-    """The render truth (``heartcv.io.read_render_truth``) of the first ``count`` frames of a sequence seen by the
-    cameras ``names``.
+def truth_for_frames(arrays: dict, meta: dict, count: int, names, start: int = 0) -> dict:
+    """The render truth (``heartcv.io.read_render_truth``) of the ``count`` frames from ``start`` of a sequence seen
+    by the cameras ``names``.
 
     Raises
     ------
@@ -136,15 +136,16 @@ def truth_for_frames(arrays: dict, meta: dict, count: int, names) -> dict:
     if "vertex_positions" not in arrays:
         raise InputError(None, "missing: a sequence truth holds the vertex positions per frame", "vertex_positions")
     n = arrays["vertex_positions"].shape[0]
-    if n < count:
-        raise InputError(None, f"{n} frames of truth for {count} measured", "vertex_positions")
+    if n < start + count:
+        raise InputError(None, f"{n} frames of truth for {count} measured" + (f" from frame {start}" if start else ""),
+                         "vertex_positions")
     if list(meta.get("camera_names", names)) != list(names):
         raise InputError(None, f"cameras {meta.get('camera_names')} differ from the rig's {list(names)}",
                          "meta.camera_names")
     out = dict(arrays)
     for key in ("vertex_positions", "instrument_mask"):
         if key in out:
-            out[key] = out[key][:count]
+            out[key] = out[key][start:start + count]
     return out
 
 

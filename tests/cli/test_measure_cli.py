@@ -92,6 +92,63 @@ def _read_csv(path):
         return list(csv.DictReader(line for line in fh if not line.startswith("#")))
 
 
+# -- a segment of a recording ------------------------------------------------------------------------------------
+def test_a_segment_is_measured_as_the_recording_cut_to_it(case, tmp_path):
+    """--start 3 --frames 5 measures frames 3-7 exactly as a copy of the recording holding only those frames: the
+    same points, positions, covariances, views bit for bit, the same truth errors (against the truth of those
+    frames). Unlike the copy, whose clock starts at its first frame, the segment keeps the recording's: its times
+    and inputs are the whole recording's of frames 3-7, its frame names those frames', and its metadata says where
+    it starts. Without a timestamps.csv the times follow the frame rate from the start frame. A start beyond the
+    recording exits 2."""
+    from heartcv.tracker.io import read_measurements
+
+    seq, names = case["seq"], sorted(p.stem for p in (case["seq"] / "cam0").iterdir())
+    cut = tmp_path / "cut"
+    for cam in ("cam0", "cam1", "cam2"):
+        (cut / cam).mkdir(parents=True)
+        for p in sorted((seq / cam).iterdir())[3:8]:
+            shutil.copy(p, cut / cam / p.name)
+    lines = (seq / "timestamps.csv").read_text().splitlines()
+    head = [ln for ln in lines if ln.startswith("#")] + [next(ln for ln in lines if not ln.startswith("#"))]
+    rows = lines[len(head):]
+    assert len(rows) == FRAMES
+    (cut / "timestamps.csv").write_text("\n".join(head + rows[3:8]) + "\n")
+    shutil.copy(seq / "inputs.csv", cut / "inputs.csv")
+    truth = np.load(case["truth"], allow_pickle=True)
+    cut_truth = tmp_path / "cut_truth.npz"
+    per_frame = ("times", "theta", "inputs", "translation", "vertex_positions", "point_positions",
+                 "fiducial_positions", "instrument_mask")
+    np.savez(cut_truth, **{k: (truth[k][3:8] if k in per_frame else truth[k]) for k in truth.files})
+    res = _measure(case, out=case["out"] / "full.npz")
+    assert res.exit_code == 0, res.output
+    res = _measure(case, "--start", 3, "--frames", 5, "--truth", case["truth"], "--json",
+                   out=case["out"] / "seg.npz")
+    assert res.exit_code == 0, res.output
+    seg_json = json.loads(res.stdout)
+    res = _measure(case, "--truth", cut_truth, "--json", seq=cut, out=case["out"] / "cut.npz")
+    assert res.exit_code == 0, res.output
+    cut_json = json.loads(res.stdout)
+    a, b = read_measurements(case["out"] / "seg.npz"), read_measurements(case["out"] / "cut.npz")
+    full = read_measurements(case["out"] / "full.npz")
+    assert a.n_frames == 5 and np.array_equal(a.times, full.times[3:8]) and np.array_equal(a.inputs, full.inputs[3:8])
+    assert a.times[0] > 0.05 and np.allclose(b.times, a.times - a.times[0])
+    for field in ("point_ids", "positions", "covariances", "reference", "views", "reprojection_rms"):
+        assert np.array_equal(getattr(a, field), getattr(b, field), equal_nan=True), field
+    assert a.meta["frame_names"] == b.meta["frame_names"] == names[3:8]
+    assert a.meta["start_frame"] == 3 and b.meta["start_frame"] == 0
+    for key in ("error_rms_m", "error_p99_m", "points_mean"):
+        assert seg_json[key] == cut_json[key], key
+    (seq / "timestamps.csv").unlink()
+    (seq / "inputs.csv").unlink()
+    res = _measure(case, "--start", 6, "--fps", 20, out=case["out"] / "fps.npz")
+    assert res.exit_code == 0, res.output
+    f = read_measurements(case["out"] / "fps.npz")
+    assert f.n_frames == FRAMES - 6 and np.allclose(f.times, np.arange(6, FRAMES) / 20.0)
+    res = _measure(case, "--start", FRAMES, out=case["out"] / "none.npz")
+    _assert_failed_cleanly(res, "--start", f"has {FRAMES} frames")
+    assert not (case["out"] / "none.npz").exists()
+
+
 # -- a good run -------------------------------------------------------------------------------------------------
 def test_json_summary_keys_with_and_without_truth(case):
     from heartcv.tracker.io import read_measurements

@@ -186,6 +186,33 @@ def test_frame_source_checks_and_reads_videos(tmp_path):
     assert images[1] is None and problems == [f"{seq / 'cam1.avi'}: frame 3 is 160x120 px, 160x99 expected"]
 
 
+def test_a_segment_of_videos_reads_the_recordings_frames(tmp_path):
+    """FrameSource.segment(7): instant k of the segment is decoded frame 7 + k of every video (the frame index
+    coded in the gray level), named as in the recording; a segment of a segment adds the starts; a start outside
+    the recording or an empty segment is a ValueError."""
+    from heartcv.io import FrameReader, open_frame_source
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for i in range(2):
+        write_video(seq / f"cam{i}.avi", "MJPG", seed=i, level0=30 * i)
+    src = open_frame_source(seq)
+    seg = src.segment(7)
+    assert (seg.n_frames, seg.start, seg.frame_names) == (N_FRAMES - 7, 7, src.frame_names[7:])
+    with FrameReader(seg, sizes=[SIZE] * 2, frames=[0, 1, 9]) as reader:
+        got = [(k, [frame_level(im) for im in images]) for k, images, _ in reader]
+    assert got == [(k, [(30 * i + 10 * (7 + k)) % 250 for i in range(2)]) for k in (0, 1, 9)]
+    sub = seg.segment(3, 4)
+    assert (sub.start, sub.n_frames, sub.frame_names) == (10, 4, src.frame_names[10:14])
+    with FrameReader(sub, sizes=[SIZE] * 2) as reader:
+        assert [frame_level(im[0]) for _, im, _ in reader] == [10 * k for k in range(10, 14)]
+    for bad in (-1, N_FRAMES):
+        with pytest.raises(ValueError, match="start"):
+            src.segment(bad)
+    with pytest.raises(ValueError, match="count"):
+        src.segment(2, 0)
+
+
 def test_frame_source_refuses_a_bad_video_before_reading(tmp_path):
     from heartcv.io import open_frame_source
 
