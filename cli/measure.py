@@ -97,10 +97,16 @@ MAX_WORKERS = 1024
                    "patch, high-pass, forward-backward, reprojection) by K; auto: sharp video (its first frames' "
                    "texture blur at most 1 px) as it is; blurrier or oversampled video is tracked on frames reduced "
                    "until their texture reads 1 px (positions reported in the full frames' pixels).")
-@click.option("--fields", type=click.Choice(["auto", "first", "second", "none"]), default="auto", show_default=True,
+@click.option("--fields", type=click.Choice(["auto", "first", "second", "both", "none"]), default="auto",
+              show_default=True,
               help="Interlaced video: measure one field of every frame (first: rows 0, 2, 4, ...; second: rows 1, 3, "
-                   "...), positions in the full frames' pixels; none: the whole frames; auto: the first field when "
-                   "the first frames look interlaced (combing ratio above 1, with a warning), else the whole frames.")
+                   "...), positions in the full frames' pixels; both: each field an instant of its own, half a frame "
+                   "apart (twice the frame rate; each field's rows interpolated back to the frame's, see "
+                   "--field-order); none: the whole frames; auto: the first field when the first frames look "
+                   "interlaced (combing ratio above 1, with a warning), else the whole frames.")
+@click.option("--field-order", type=click.Choice(["auto", "top", "bottom"]), default="auto", show_default=True,
+              help="With --fields both: which field was taken first (top: rows 0, 2, ...); auto: from the first "
+                   "frames' motion (top when they cannot tell, with a warning).")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False), default=None,
               help="Render truth (truth.npz of `heartcv render sequence`): report the 3-D error of every point.")
 @click.option("--csv", "csv_file", type=click.Path(dir_okay=False), default=None,
@@ -111,7 +117,8 @@ MAX_WORKERS = 1024
 def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed, ref_camera, max_points, min_distance,
             corner_block, corner_quality, frames, start, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
             max_depth_std, max_reprojection, min_angle, max_gap, window, no_specular, overlay_dir, overlay_video,
-            backend, device, pixel_sigma, highpass, size_factor, fields, truth_file, csv_file, workers, as_json):
+            backend, device, pixel_sigma, highpass, size_factor, fields, field_order, truth_file, csv_file, workers,
+            as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
     name is the same instant; or, with --packed, one holding all the views) seen by the cameras of RIG, and write
     their positions and covariances per frame.
@@ -122,6 +129,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     exit 1 when no point can be tracked (the message names the gates that removed the candidates).
     """
     from heartcv.io import FrameReader, open_frame_source, read_rig
+    from heartcv.measure import FieldInstants
     from heartcv.tracker.files import InputError
     from heartcv.tracker.io import write_measurements
 
@@ -135,6 +143,11 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         check_overlay_dir(overlay_dir)
     elif overlay_video:
         raise BadInput("--overlay-video: only with --overlay DIR")
+    both = fields == "both"
+    if field_order != "auto" and not both:
+        raise BadInput("--field-order applies to --fields both only")
+    if both and truth_file is not None:
+        raise BadInput("--truth: not with --fields both (a render truth is of whole frames)")
     rig = read_rig(rig_file)
     if len(rig) < 2:
         raise InputError(rig_file, f"{len(rig)} camera ({rig.names[0]}); measure triangulates from at least 2",
@@ -160,6 +173,12 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         raise BadInput(f"{sequence}: no frame")
     _check_sizes(source, rig, count, rig_file)
     times = _frame_times(recording, fps, start + count)[start:]   # a segment keeps the recording's clock
+    if both:
+        if count < 2:
+            raise BadInput(f"--fields both: {count} frame; at least 2 are needed (the fields' times)")
+        from heartcv.measure_data import field_times
+
+        times = field_times(times)
     stamps = seq / "timestamps.csv" if fps is None and (seq / "timestamps.csv").is_file() else None
     in_names, in_units, in_values = _inputs(inputs_path, times, required=inputs_file is not None, times_from=stamps)
     roi = _mask(mask_file, rig.cameras[ref].size)
@@ -177,20 +196,28 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     t_start = time.perf_counter()
     mode = "gray" if dense else "color"
     sizing = {"fields": fields} if dense else {"size_factor": _size_factor(size_factor), "fields": fields}
+    first_field = None
+    instant_names = list(source.frame_names[:count])
     with FrameReader(source, mode=mode, sizes=[c.size for c in rig.cameras], frames=range(count),
                      workers=workers) as reader:
-        run = _run(ctx, reader, rig, opts, roi, be, count, sequence, rig_file, dense, sizing)
+        if both:
+            first_field = _field_order(reader, count, ref, roi, field_order, rig.cameras[ref].name, sizing)
+            reader = FieldInstants(reader, first_field)
+            order = ("top", "bottom") if first_field == 0 else ("bottom", "top")
+            instant_names = [f"{n}.{f}" for n in instant_names for f in order]
+        run = _run(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense, sizing)
     wall = time.perf_counter() - t_start
     res = run.result
     hp = highpass * (sizing or {}).get("size_factor", 1.0) * (sizing or {}).get("reduction", 1.0)
-    mset = _measurement_set(res, rig.cameras[ref], times, (in_names, in_units, in_values), be.name, source, count,
-                            ref, hp, rig_file, inputs_path)
+    mset = _measurement_set(res, rig.cameras[ref], times, (in_names, in_units, in_values), be.name, source,
+                            instant_names, ref, hp, rig_file, inputs_path)
     if csv_file:
         _write_csv(csv_file, mset, res.uv, names)
     write_measurements(output, mset)
     overlay = None
     if overlay_dir is not None:
-        overlay = _overlay(ctx, overlay_dir, source, rig, run.result, count, ref, times, overlay_video, workers)
+        overlay = _overlay(ctx, overlay_dir, source, rig, run.result, count, ref, times, overlay_video, workers,
+                           first_field, instant_names)
     _report(output, run, times, wall, names, "dense" if dense else be.name, truth, ref, as_json, overlay, sizing,
             ref_cam=rig.cameras[ref])
 
@@ -451,16 +478,19 @@ def _choose_field(first, roi, camera, sizing):
     None)."""
     from heartcv.measure import COMBING_RATIO, auto_field
 
+    asked = sizing.get("fields") or "auto"
+    if asked == "both":      # the instants are fields already (FieldInstants; _field_order checked the frames)
+        return None
     auto, comb = auto_field(first or (), roi)
     comb = comb if math.isfinite(comb) else None
     sizing["combing_ratio"] = comb
-    asked = sizing.get("fields") or "auto"
     if asked == "auto":
         field = auto
         if field is not None:
             log.warning("camera %s's first frames look interlaced (combing ratio %.2f; progressive video reads below "
-                        "%g): measuring the first field of every frame (--fields second for the other, --fields none "
-                        "for the whole frames)", camera, comb, COMBING_RATIO)
+                        "%g): measuring the first field of every frame (--fields both for both fields as instants of "
+                        "their own, --fields second for the other, --fields none for the whole frames)", camera, comb,
+                        COMBING_RATIO)
     else:
         field = {"none": None, "first": 0, "second": 1}[asked]
         if asked == "none" and auto is not None:
@@ -471,7 +501,45 @@ def _choose_field(first, roi, camera, sizing):
     return field
 
 
-def _measurement_set(res, ref_cam, times, inputs, backend, source, count, ref, highpass, rig_file, inputs_path):
+def _field_order(reader, count, ref, roi, asked, camera, sizing) -> int:
+    """The field taken first (0 top, 1 bottom) for ``--fields both``: ``--field-order`` top or bottom as given; auto
+    from the reference camera's first (up to 30) consecutive frames (:func:`heartcv.measure.field_order`), decided
+    when its frames' votes are a majority a binomial sign test finds at the 5 % level, else top with a warning.
+    Records ``combing_ratio``, ``field_order`` (and for auto ``field_order_votes``, ``_pairs`` and ``_ratio``) in
+    ``sizing``; warns when the frames do not look interlaced."""
+    from scipy.stats import binom
+
+    from heartcv.measure import COMBING_RATIO, field_order, frames_combing_ratio
+
+    frames = [reader.read(k)[0][ref] for k in range(min(count, 30))]
+    mask = None if roi is None else roi
+    comb = frames_combing_ratio([f for f in frames if f is not None], mask)
+    sizing["combing_ratio"] = comb if math.isfinite(comb) else None
+    if not (math.isfinite(comb) and comb > COMBING_RATIO):
+        log.warning("--fields both: camera %s's first frames do not look interlaced (combing ratio %s; interlaced "
+                    "video reads above %g): their two fields are then one instant, measured twice", camera,
+                    f"{comb:.2f}" if math.isfinite(comb) else "undefined", COMBING_RATIO)
+    if asked != "auto":
+        first = 0 if asked == "top" else 1
+    else:
+        first, ratio, votes, pairs = field_order(frames, mask)
+        sizing.update(field_order_votes=votes, field_order_pairs=pairs,
+                      field_order_ratio=ratio if math.isfinite(ratio) else None)
+        p = float(binom.sf(votes - 1, pairs, 0.5)) if pairs else 1.0
+        if p >= 0.05:
+            log.warning("--fields both: the first %d frames do not tell which field was taken first (%d of %d "
+                        "votes, ratio %s): assuming the top field (--field-order top|bottom to choose)", len(frames),
+                        votes, pairs, f"{ratio:.3g}" if math.isfinite(ratio) else "undefined")
+            first = 0
+        else:
+            log.info("--fields both: the %s field is taken first (%d of %d frames say so; ratio %.3g)",
+                     "top" if first == 0 else "bottom", votes, pairs, ratio)
+    sizing.update(fields="both", field_order="top first" if first == 0 else "bottom first")
+    return first
+
+
+def _measurement_set(res, ref_cam, times, inputs, backend, source, frame_names, ref, highpass, rig_file,
+                     inputs_path):
     from heartcv.io import file_hash
     from heartcv.measure_data import reference_pixels
     from heartcv.tracker.measurements import MeasurementSet
@@ -483,7 +551,7 @@ def _measurement_set(res, ref_cam, times, inputs, backend, source, count, ref, h
             "backend": backend, "sigma_px": res.sigma_px, "sigma_estimated": res.sigma_estimated,
             "reference_frame_index": res.birth_frame.tolist(),
             "reference_uv": reference_pixels(res, ref_cam, ref).tolist(),
-            "frame_names": list(source.frame_names[:count]), "highpass_sigma": highpass, "inputs_hash": hashes,
+            "frame_names": list(frame_names), "highpass_sigma": highpass, "inputs_hash": hashes,
             "sequence": str(source.folder), "start_frame": int(source.start)} \
         | ({"packed": source.packing} if source.packing else {})
     return MeasurementSet(times=times, point_ids=res.point_ids, positions=res.positions, covariances=res.covariances,
@@ -500,17 +568,22 @@ def _write_csv(path, mset, uv, names):
         tmp.write_text("\n".join(measurement_csv_lines(mset, uv, names)) + "\n", encoding="utf-8")
 
 
-def _overlay(ctx, folder, source, rig, result, count, ref, times, video, workers):
+def _overlay(ctx, folder, source, rig, result, count, ref, times, video, workers, first_field, names):
+    """The overlay of ``count`` frames (``names``: the instants' names; both fields of each frame as instants
+    when ``first_field`` is not None)."""
     from heartcv.io import FrameReader
+    from heartcv.measure import FieldInstants
 
     from .measure_overlay import write_overlay
 
     fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 25.0
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
     with FrameReader(source, mode="color", sizes=[c.size for c in rig.cameras], frames=range(count),
-                     workers=workers) as reader, progress(reader, "overlay", count, verbosity) as frames:
-        summary = write_overlay(folder, frames, result, list(source.camera_names), list(source.frame_names[:count]),
-                                ref=ref, fps=fps, video=video)
+                     workers=workers) as reader:
+        instants = reader if first_field is None else FieldInstants(reader, first_field)
+        with progress(instants, "overlay", len(names), verbosity) as frames:
+            summary = write_overlay(folder, frames, result, list(source.camera_names), list(names), ref=ref,
+                                    fps=fps, video=video)
     log.info("wrote the overlay %s", folder)
     return summary
 

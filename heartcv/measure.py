@@ -64,7 +64,7 @@ from .triangulation import triangulate
 __all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_factor",
            "MIN_REDUCED_SIDE_PX", "REDUCTION_STEP", "auto_reduction", "reduced_size", "reduce_image", "reduce_mask",
            "reduced_camera", "field_image", "field_camera", "WorkingView", "COMBING_RATIO", "combing_ratio",
-           "frames_combing_ratio", "auto_field", "MeasureResult",
+           "frames_combing_ratio", "auto_field", "bob_field", "FieldInstants", "field_order", "MeasureResult",
            "Highlights",
            "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
            "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
@@ -315,6 +315,95 @@ def auto_field(frames, mask=None) -> tuple[int | None, float]:
     when it exceeds :data:`COMBING_RATIO`, else None (the whole frames)."""
     ratio = frames_combing_ratio(frames, mask)
     return (0 if math.isfinite(ratio) and ratio > COMBING_RATIO else None), ratio
+
+
+def bob_field(image, field: int) -> np.ndarray:
+    """One field of an interlaced image (H, W) or (H, W, 3) back on the image's own rows, at the field's phase:
+    its rows ``field``, ``field + 2``, ... as they are, the rows between them the mean of their two neighbours
+    (the nearest one at the top or bottom edge); the input's dtype (8-bit rounded). Both fields so treated are
+    images of one geometry, the camera's, taken at two instants ("bob" deinterlacing without a half-row shift)."""
+    img = np.asarray(image)
+    H = img.shape[0]
+    if field not in (0, 1):
+        raise ValueError(f"field: 0 or 1 expected, got {field!r}")
+    if H < 2:
+        raise ValueError(f"image: at least 2 rows expected, got {H}")
+    src = img.astype(np.float32)
+    out = src.copy()
+    other = np.arange(1 - field, H, 2)                      # the rows of the other field, filled
+    above, below = other - 1, other + 1
+    above = np.where(above < 0, below, above)
+    below = np.where(below >= H, above, below)
+    out[other] = 0.5 * (src[above] + src[below])
+    if np.issubdtype(img.dtype, np.integer):
+        info = np.iinfo(img.dtype)
+        return np.clip(np.rint(out), info.min, info.max).astype(img.dtype)
+    return out.astype(img.dtype)
+
+
+class FieldInstants:
+    """Both fields of interlaced frames as instants of their own (:func:`bob_field`): instant ``2 k`` is the field
+    taken first of frame ``k`` (``first``: 0 the top field, rows 0, 2, ...; 1 the bottom one), instant ``2 k + 1``
+    the other. Wraps a reader of frames (``read(k) -> (images, problems)`` and iteration over ``(k, images,
+    problems)``, e.g. :class:`heartcv.io.FrameReader`) and offers the same for the instants; a frame's problems
+    are those of both its instants."""
+
+    def __init__(self, reader, first: int = 0):
+        if first not in (0, 1):
+            raise ValueError(f"first: 0 or 1 expected, got {first!r}")
+        self.reader = reader
+        self.order = (first, 1 - first)
+
+    def _fields(self, images, j):
+        f = self.order[j]
+        return [None if im is None else bob_field(im, f) for im in images]
+
+    def read(self, i: int):
+        images, problems = self.reader.read(i // 2)
+        return self._fields(images, i % 2), problems
+
+    def __iter__(self):
+        for k, images, problems in self.reader:
+            for j in (0, 1):
+                yield 2 * k + j, self._fields(images, j), problems
+
+
+def field_order(frames, mask=None) -> tuple[int, float, int, int]:
+    """``(first, ratio, votes, pairs)``: which field of interlaced frames was taken first, from consecutive frames
+    (the reference camera's first frames, in order, gray or BGR) of a moving scene. With ``A_k``, ``B_k`` the top
+    and bottom fields of frame ``k`` (:func:`bob_field`), the top field first puts ``B_k`` half a frame before
+    ``A_{k+1}`` and one and a half after ``A_{k-1}``; the bottom field first the other way round. So each frame ``k``
+    with both neighbours votes for the top field first when ``B_k`` differs less from ``A_{k+1}`` than from
+    ``A_{k-1}`` (mean absolute difference over ``mask``, default the image without an eighth of each side).
+    ``first`` is 0 (top) when more than half of the ``pairs`` votes say so, else 1; ``ratio`` the summed difference
+    to ``A_{k-1}`` over that to ``A_{k+1}`` (above 1: top first). ``votes`` counts the votes for ``first``; a frame
+    whose two differences are equal (a still scene) does not vote. No vote: ``first`` 0 (``ratio`` NaN with fewer
+    than 3 readable consecutive frames)."""
+    g = [None if f is None else np.asarray(_gray(f), np.float32) for f in frames]
+    if mask is None and g and g[0] is not None:
+        H, W = g[0].shape
+        mask = np.zeros((H, W), bool)
+        mask[H // 8:H - H // 8, W // 8:W - W // 8] = True
+    top = [None if im is None else bob_field(im, 0) for im in g]
+    bottom = [None if im is None else bob_field(im, 1) for im in g]
+    m = None if mask is None else np.asarray(mask, bool)
+    prev_sum = next_sum = 0.0
+    top_votes = pairs = 0
+    for k in range(1, len(g) - 1):
+        if bottom[k] is None or top[k - 1] is None or top[k + 1] is None:
+            continue
+        d_prev = float(np.mean(np.abs(bottom[k] - top[k - 1])[m]))
+        d_next = float(np.mean(np.abs(bottom[k] - top[k + 1])[m]))
+        prev_sum += d_prev
+        next_sum += d_next
+        if d_next != d_prev:           # a tie (a still scene) does not vote
+            pairs += 1
+            top_votes += d_next < d_prev
+    ratio = prev_sum / next_sum if next_sum > 0 else math.nan
+    if pairs == 0:
+        return 0, ratio, 0, 0
+    first = 0 if 2 * top_votes > pairs else 1
+    return first, ratio, top_votes if first == 0 else pairs - top_votes, pairs
 
 
 def auto_reduction(frames, mask=None) -> tuple[float, float, float]:

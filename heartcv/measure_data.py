@@ -13,9 +13,9 @@ import numpy as np
 
 from .tracker.files import InputError
 
-__all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "inputs_at_frames", "check_image_sizes",
-           "truth_for_frames", "truth_statistics", "reference_pixels", "measurement_summary", "CSV_HEADER",
-           "measurement_csv_lines"]
+__all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "inputs_at_frames",
+           "check_image_sizes", "truth_for_frames", "truth_statistics", "reference_pixels", "measurement_summary",
+           "CSV_HEADER", "measurement_csv_lines"]
 
 # inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
 UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
@@ -42,6 +42,21 @@ def frame_times(count: int, *, timestamps=None, fps: float | None = None, video_
         return np.asarray(timestamps, float)[:count]
     rate = fps or video_fps or DEFAULT_FPS
     return np.arange(count) / rate
+
+
+def field_times(times) -> np.ndarray:
+    """Times (2 K,) of the two fields of K interlaced frames taken at ``times`` (K,), as instants of their own
+    (:class:`heartcv.measure.FieldInstants`): the first field at the frame's time, the second half a frame later
+    (half the interval to the next frame; for the last frame, to the one before). ValueError for fewer than 2
+    frames or times that do not increase."""
+    t = np.asarray(times, float)
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError(f"times: at least 2 frames expected, got {t.size}")
+    dt = np.diff(t)
+    if not (np.isfinite(t).all() and (dt > 0).all()):
+        raise ValueError("times: finite and strictly increasing expected")
+    half = 0.5 * np.r_[dt, dt[-1]]
+    return np.stack([t, t + half], axis=1).reshape(-1)
 
 
 def inputs_at_frames(columns: dict, times) -> tuple[tuple, tuple, np.ndarray]:

@@ -451,3 +451,63 @@ def test_interlaced_frames_are_measured_one_field(case, tmp_path):
     assert json.loads(res.stdout)["fields"] is None
     assert "look interlaced" in res.stderr and "--fields first" in res.stderr, res.stderr
     assert read_measurements(out).positions.shape != ref.positions.shape      # other tracks, from combed frames
+
+
+def test_both_fields_are_measured_as_instants_of_their_own(case, tmp_path):
+    """--fields both: 5 interlaced frames woven from the 10 rendered ones (frame k: rows 0, 2, ... of instant 2k,
+    rows 1, 3, ... of instant 2k + 1) are measured exactly as a progressive folder of their 10 fields, each
+    interpolated back to the frame's rows (heartcv.measure.bob_field, written as images): the same points,
+    positions and covariances bit for bit. The instants' times are the frames' and half a frame later
+    (measure_data.field_times), their names the frame's with the field, and --field-order bottom swaps each frame's
+    two instants. --field-order without --fields both, --truth with it, or a single frame exit 2."""
+    import cv2
+
+    from heartcv.measure import bob_field
+    from heartcv.measure_data import field_times
+    from heartcv.tracker.io import read_measurements
+
+    seq = case["seq"]
+    names = sorted(p.stem for p in (seq / "cam0").iterdir())
+    woven, bobbed = tmp_path / "woven", tmp_path / "bobbed"
+    for cam in ("cam0", "cam1", "cam2"):
+        (woven / cam).mkdir(parents=True)
+        (bobbed / cam).mkdir(parents=True)
+        files = sorted((seq / cam).iterdir())
+        for k in range(FRAMES // 2):
+            a = cv2.imread(str(files[2 * k]), cv2.IMREAD_UNCHANGED)
+            b = cv2.imread(str(files[2 * k + 1]), cv2.IMREAD_UNCHANGED)
+            w = a.copy()
+            w[1::2] = b[1::2]
+            cv2.imwrite(str(woven / cam / files[2 * k].name), w)
+            for j, f in enumerate((0, 1)):
+                cv2.imwrite(str(bobbed / cam / f"{2 * k + j:06d}.png"), bob_field(w, f))
+    t_frames = np.arange(FRAMES // 2) / 15.0
+    (woven / "timestamps.csv").write_text("time_s\n" + "".join(f"{float(t)!r}\n" for t in t_frames))
+    (bobbed / "timestamps.csv").write_text("time_s\n" + "".join(f"{float(t)!r}\n" for t in field_times(t_frames)))
+    res = _measure(case, "--fields", "both", "--field-order", "top", "--json", seq=woven, out=case["out"] / "b.npz")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["fields"] == "both" and s["field_order"] == "top first" and s["frames"] == FRAMES
+    res = _measure(case, "--fields", "none", seq=bobbed, out=case["out"] / "p.npz")
+    assert res.exit_code == 0, res.output
+    a, b = read_measurements(case["out"] / "b.npz"), read_measurements(case["out"] / "p.npz")
+    np.testing.assert_allclose(a.times, field_times(t_frames), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.times, a.times, rtol=0, atol=1e-12)
+    for field in ("point_ids", "positions", "covariances", "reference", "views"):
+        assert np.array_equal(getattr(a, field), getattr(b, field), equal_nan=True), field
+    assert a.meta["frame_names"][:4] == [f"{names[0]}.top", f"{names[0]}.bottom", f"{names[2]}.top",
+                                         f"{names[2]}.bottom"]
+    res = _measure(case, "--fields", "both", "--field-order", "bottom", seq=woven, out=case["out"] / "bb.npz")
+    assert res.exit_code == 0, res.output
+    assert read_measurements(case["out"] / "bb.npz").meta["frame_names"][:2] == [f"{names[0]}.bottom",
+                                                                                   f"{names[0]}.top"]
+    res = _measure(case, "--fields", "both", "--json", seq=woven, out=case["out"] / "auto.npz")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["field_order_pairs"] <= 3 and s["field_order"] in ("top first", "bottom first")
+    for extra, words in ((("--field-order", "top"), ("--field-order", "--fields both")),
+                         (("--fields", "both", "--truth", case["truth"]), ("--truth", "--fields both")),
+                         (("--fields", "both", "--frames", 1), ("--fields both", "at least 2"))):
+        res = _measure(case, *extra, seq=woven, out=case["out"] / "x.npz")
+        _assert_failed_cleanly(res, *words)
+        assert not (case["out"] / "x.npz").exists()

@@ -350,3 +350,101 @@ def test_auto_field_takes_the_first_field_of_combed_frames_only():
     flat = [np.full((50, 60), 90, np.uint8)]
     field, ratio = auto_field(flat)
     assert field is None and np.isnan(ratio)
+
+
+def test_bob_field_keeps_its_rows_and_fills_the_others_at_its_phase():
+    """bob_field(image, f): the rows f, f + 2, ... as they are, every other row the mean of its two neighbours (the
+    nearest one at an edge), the dtype kept (8-bit rounded). A vertical linear ramp is reproduced exactly by both
+    fields away from the edge rows, so the two fields of a progressive image are images of one geometry (no
+    half-row shift); colour images per channel."""
+    from heartcv.measure import bob_field
+
+    rng = np.random.default_rng(11)
+    img = rng.integers(0, 256, (7, 5, 3), dtype=np.uint8)
+    for f in (0, 1):
+        out = bob_field(img, f)
+        assert out.dtype == np.uint8 and out.shape == img.shape
+        np.testing.assert_array_equal(out[f::2], img[f::2])
+        for v in range(1 - f, 7, 2):
+            nb = [r for r in (v - 1, v + 1) if 0 <= r < 7]
+            expected = np.rint(np.mean([img[r].astype(float) for r in nb], axis=0))
+            np.testing.assert_array_equal(out[v], expected.astype(np.uint8))
+    ramp = np.repeat((3.0 * np.arange(12))[:, None], 4, axis=1)
+    for f in (0, 1):
+        np.testing.assert_allclose(bob_field(ramp, f)[1:-1], ramp[1:-1], atol=1e-12)
+    with pytest.raises(ValueError, match="field"):
+        bob_field(img, 2)
+
+
+def test_field_instants_are_both_fields_in_the_order_taken():
+    """FieldInstants: frame k gives instants 2k (the field taken first) and 2k + 1, each bob_field of its images,
+    with the frame's problems; read(i) gives what the iteration gives at i; a missing image stays missing."""
+    from heartcv.measure import FieldInstants, bob_field
+
+    rng = np.random.default_rng(12)
+    frames = [[rng.integers(0, 256, (6, 4), dtype=np.uint8), None if k == 1 else
+               rng.integers(0, 256, (6, 4), dtype=np.uint8)] for k in range(3)]
+
+    class Reader:
+        def read(self, k):
+            return frames[k], ([f"p{k}"] if k == 1 else [])
+
+        def __iter__(self):
+            return ((k, *self.read(k)) for k in range(3))
+
+    for first in (0, 1):
+        inst = FieldInstants(Reader(), first)
+        got = list(inst)
+        assert [i for i, _, _ in got] == list(range(6))
+        for i, images, problems in got:
+            k, f = i // 2, (first if i % 2 == 0 else 1 - first)
+            assert problems == (["p1"] if k == 1 else [])
+            np.testing.assert_array_equal(images[0], bob_field(frames[k][0], f))
+            assert (images[1] is None) == (k == 1)
+            r_images, r_problems = inst.read(i)
+            assert r_problems == problems and all(
+                (a is None and b is None) or np.array_equal(a, b) for a, b in zip(r_images, images))
+    with pytest.raises(ValueError, match="first"):
+        FieldInstants(Reader(), 2)
+
+
+def _woven(first, moves, shift=3, K=12, seed=9):
+    """K interlaced frames of a texture panning ``shift`` px per field time (``moves``), its ``first`` field taken
+    first: frame k's first field shows instant 2k, its other field instant 2k + 1."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (120, 400)).astype(np.float32), (0, 0), 2.0)
+    def at(i):
+        return np.roll(tex, shift * i if moves else 0, axis=1)[:, :200]
+    frames = []
+    for k in range(K):
+        a, b = at(2 * k), at(2 * k + 1)
+        w = np.empty_like(a)
+        w[first::2], w[1 - first::2] = a[first::2], b[1 - first::2]
+        frames.append(np.clip(w, 0, 255).astype(np.uint8))
+    return frames
+
+
+def test_field_order_tells_which_field_was_taken_first():
+    """field_order on a panning texture woven with the top field first: 0, every frame votes for it and the ratio
+    is above 1; with the bottom field first: 1, all votes, ratio below 1; a still scene cannot tell (no vote, ratio
+    1). Fewer than 3 frames: no pairs, NaN."""
+    from heartcv.measure import field_order
+
+    first, ratio, votes, pairs = field_order(_woven(0, True))
+    assert (first, votes, pairs) == (0, 10, 10) and ratio > 1.2
+    first, ratio, votes, pairs = field_order(_woven(1, True))
+    assert (first, votes, pairs) == (1, 10, 10) and ratio < 1 / 1.2
+    assert field_order(_woven(0, False)) == (0, 1.0, 0, 0)          # a still scene: every frame a tie, no vote
+    first, ratio, votes, pairs = field_order(_woven(0, True)[:2])
+    assert (first, votes, pairs) == (0, 0, 0) and np.isnan(ratio)
+
+
+def test_field_times_put_the_second_field_half_a_frame_later():
+    from heartcv.measure_data import field_times
+
+    np.testing.assert_allclose(field_times([0.0, 0.04, 0.1]), [0.0, 0.02, 0.04, 0.07, 0.1, 0.13])
+    for bad in ([0.0], [0.0, 0.0], [0.1, 0.0]):
+        with pytest.raises(ValueError, match="times"):
+            field_times(bad)
