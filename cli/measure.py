@@ -130,6 +130,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     """
     from heartcv.io import FrameReader, open_frame_source, read_rig
     from heartcv.measure import FieldInstants
+    from heartcv.measure_data import expand_to_grid
     from heartcv.tracker.files import InputError
     from heartcv.tracker.io import write_measurements
 
@@ -180,7 +181,10 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
 
         times = field_times(times)
     stamps = seq / "timestamps.csv" if fps is None and (seq / "timestamps.csv").is_file() else None
-    in_names, in_units, in_values = _inputs(inputs_path, times, required=inputs_file is not None, times_from=stamps)
+    grid = _grid(times, stamps)
+    file_times = times if grid is None else grid[1]
+    in_names, in_units, in_values = _inputs(inputs_path, file_times, required=inputs_file is not None,
+                                            times_from=stamps)
     roi = _mask(mask_file, rig.cameras[ref].size)
     truth = _truth(truth_file, count, names, source.start)
     be = _backend(backend, device)
@@ -209,10 +213,15 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     wall = time.perf_counter() - t_start
     res = run.result
     hp = highpass * (sizing or {}).get("size_factor", 1.0) * (sizing or {}).get("reduction", 1.0)
-    mset = _measurement_set(res, rig.cameras[ref], times, (in_names, in_units, in_values), be.name, source,
-                            instant_names, ref, hp, rig_file, inputs_path)
+    mset = _measurement_set(res, rig.cameras[ref], file_times, (in_names, in_units, in_values), be.name, source,
+                            instant_names, ref, hp, rig_file, inputs_path, grid)
+    if grid is not None:
+        sizing = dict(sizing or {}, frame_grid={"interval_s": grid[2], "frames": int(grid[1].size),
+                                                "missing_frames": int(grid[1].size - len(times)),
+                                                "offset_max_intervals": float(np.abs(grid[3]).max())})
     if csv_file:
-        _write_csv(csv_file, mset, res.uv, names)
+        _write_csv(csv_file, mset, res.uv if grid is None else expand_to_grid(res.uv, grid[0], grid[1].size, np.nan),
+                   names)
     write_measurements(output, mset)
     overlay = None
     if overlay_dir is not None:
@@ -538,10 +547,32 @@ def _field_order(reader, count, ref, roi, asked, camera, sizing) -> int:
     return first
 
 
+def _grid(times, stamps):
+    """None for equally spaced frame times (to 1e-6); else the uniform grid of frames that jitter or skip
+    (:func:`heartcv.measure_data.frame_grid`: ``(index, grid times, interval, offsets)``), logged; exit 2 naming
+    the timestamps file for timing too irregular for it."""
+    from heartcv.measure_data import frame_grid, uniform_times
+    from heartcv.tracker.files import InputError
+
+    if uniform_times(times):
+        return None
+    try:
+        grid = frame_grid(times)
+    except ValueError as exc:
+        raise InputError(stamps, str(exc), "time_s") from None
+    index, grid_times, dt, offset = grid
+    missing = grid_times.size - len(times)
+    log.warning("the frame times are not equally spaced (%s): the measurement file puts the frames on a uniform grid "
+                "of %.6g ms fitted to them (frames at most %.2f of an interval off it)%s", stamps or "frame times",
+                1e3 * dt, float(np.abs(offset).max()),
+                f", with {missing} missing frame(s) as frames where nothing was seen" if missing else "")
+    return grid
+
+
 def _measurement_set(res, ref_cam, times, inputs, backend, source, frame_names, ref, highpass, rig_file,
-                     inputs_path):
+                     inputs_path, grid=None):
     from heartcv.io import file_hash
-    from heartcv.measure_data import reference_pixels
+    from heartcv.measure_data import expand_to_grid, reference_pixels
     from heartcv.tracker.measurements import MeasurementSet
 
     in_names, in_units, in_values = inputs
@@ -554,9 +585,19 @@ def _measurement_set(res, ref_cam, times, inputs, backend, source, frame_names, 
             "frame_names": list(frame_names), "highpass_sigma": highpass, "inputs_hash": hashes,
             "sequence": str(source.folder), "start_frame": int(source.start)} \
         | ({"packed": source.packing} if source.packing else {})
-    return MeasurementSet(times=times, point_ids=res.point_ids, positions=res.positions, covariances=res.covariances,
-                          reference=res.reference, inputs=in_values, input_names=in_names, input_units=in_units,
-                          frame="rig", views=res.views, reprojection_rms=res.reprojection_rms, meta=meta)
+    arrays = dict(positions=res.positions, covariances=res.covariances, views=res.views,
+                  reprojection_rms=res.reprojection_rms)
+    if grid is not None:    # frames on the uniform grid; grid points without a frame hold nothing seen
+        index, G = grid[0], grid[1].size
+        arrays = {k: expand_to_grid(v, index, G, 0 if k == "views" else np.nan) for k, v in arrays.items()}
+        slots = np.full(G, "(missing)", dtype=object)
+        slots[index] = list(frame_names)
+        meta.update(frame_names=[str(n) for n in slots],
+                    reference_frame_index=[int(index[b]) for b in res.birth_frame],
+                    frame_grid={"interval_s": grid[2], "measured_frames": int(len(index)),
+                                "offset_max_intervals": float(np.abs(grid[3]).max())})
+    return MeasurementSet(times=times, point_ids=res.point_ids, reference=res.reference, inputs=in_values,
+                          input_names=in_names, input_units=in_units, frame="rig", meta=meta, **arrays)
 
 
 # -- outputs -------------------------------------------------------------------------------------------------------

@@ -13,7 +13,8 @@ import numpy as np
 
 from .tracker.files import InputError
 
-__all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "inputs_at_frames",
+__all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "GRID_TOLERANCE",
+           "uniform_times", "frame_grid", "expand_to_grid", "inputs_at_frames",
            "check_image_sizes", "truth_for_frames", "truth_statistics", "reference_pixels", "measurement_summary",
            "CSV_HEADER", "measurement_csv_lines"]
 
@@ -42,6 +43,67 @@ def frame_times(count: int, *, timestamps=None, fps: float | None = None, video_
         return np.asarray(timestamps, float)[:count]
     rate = fps or video_fps or DEFAULT_FPS
     return np.arange(count) / rate
+
+
+GRID_TOLERANCE = 0.25
+"""How far (in frame intervals) a frame may lie from its point of the uniform grid :func:`frame_grid` fits: a
+quarter interval keeps every frame nearer its own grid point than any other by a factor of three."""
+
+
+def uniform_times(times, rtol: float = 1e-6) -> bool:
+    """Whether frame times are equally spaced to ``rtol`` of their median interval (what the estimators require,
+    ``tracker.tracking.frame_interval``); a single frame is."""
+    d = np.diff(np.asarray(times, float))
+    return d.size == 0 or bool(np.abs(d - np.median(d)).max() <= rtol * np.median(d))
+
+
+def frame_grid(times, tolerance: float = GRID_TOLERANCE):
+    """A uniform grid for frame times that jitter (timestamps rounded, a capture's clock) or skip frames (dropped
+    frames): ``(index (K,), grid (G,), dt, offset (K,))``, frame k on grid point ``index[k]``, ``grid = t0 + dt
+    arange(G)`` with ``G = index[-1] + 1`` (grid points with no frame: the dropped frames), ``offset`` each frame's
+    time minus its grid point's, in intervals.
+
+    Each interval between consecutive frames counts ``round(d / median d)`` grid steps (at least 1), so a slowly
+    drifting clock does not move later frames to the wrong point; ``t0`` and ``dt`` are then the least-squares line
+    through (index, time).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 2 frames, times not finite and strictly increasing, two frames less than half the median
+        interval apart (two frames on one grid point), or a frame farther than ``tolerance`` intervals from its
+        grid point (timing too irregular for a constant frame interval); the message names the frame.
+    """
+    t = np.asarray(times, float)
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError(f"times: at least 2 frames expected, got {t.size}")
+    d = np.diff(t)
+    if not (np.isfinite(t).all() and (d > 0).all()):
+        raise ValueError("times: finite and strictly increasing expected")
+    median = float(np.median(d))
+    steps = np.rint(d / median).astype(np.int64)
+    if (steps < 1).any():
+        k = int(np.argmax(steps < 1))
+        raise ValueError(f"frames {k} and {k + 1} are {1e3 * d[k]:.4g} ms apart, less than half the median interval "
+                         f"{1e3 * median:.4g} ms (two frames on one point of a uniform grid)")
+    index = np.r_[0, np.cumsum(steps)]
+    A = np.column_stack([np.ones(t.size), index.astype(float)])
+    (t0, dt), *_ = np.linalg.lstsq(A, t, rcond=None)
+    offset = (t - (t0 + dt * index)) / dt
+    worst = int(np.argmax(np.abs(offset)))
+    if abs(offset[worst]) > tolerance:
+        raise ValueError(f"frame {worst} (t = {t[worst]:.6g} s) lies {offset[worst]:+.2f} of an interval from a "
+                         f"uniform grid of {1e3 * dt:.6g} ms fitted to the frame times (at most {tolerance:g} "
+                         "allowed): timing too irregular for a constant frame interval")
+    return index, t0 + dt * np.arange(index[-1] + 1), float(dt), offset
+
+
+def expand_to_grid(values, index, count: int, fill):
+    """``values`` (K, ...) placed on the rows ``index`` (K,) of an array of ``count`` rows, the others ``fill``."""
+    values = np.asarray(values)
+    out = np.full((count,) + values.shape[1:], fill, dtype=values.dtype)
+    out[np.asarray(index)] = values
+    return out
 
 
 def field_times(times) -> np.ndarray:

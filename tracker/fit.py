@@ -313,6 +313,12 @@ class UnknownInputProblem(FitProblem):
         beta = d * sla.lstsq(S * np.outer(d, d), rhs * d, cond=1e-12)[0]
         rigid = np.zeros((K, nr))
         rigid[1:] = beta[:nt].reshape(K - 1, nr)
+        seen = np.zeros(K, bool)
+        seen[fi] = True
+        seen[0] = True                       # the gauge: no rigid motion at the first frame
+        if not seen.all():                   # frames where nothing was seen: their motion between their neighbours'
+            k = np.arange(K)
+            rigid = np.column_stack([np.interp(k, k[seen], rigid[seen, c]) for c in range(nr)])
         alpha = beta[nt:]
         m = np.einsum("pij,pj->pi", self._G_inv, b - np.einsum("pib,b->pi", B, beta))
         res = e - np.einsum("nia,na->ni", Gr, rigid[fi]) - np.einsum("nia,a->ni", J, alpha) - m[pi]
@@ -370,6 +376,9 @@ class UnknownInputProblem(FitProblem):
         matrix, scaled by the reduced chi-square when above 1."""
         alpha, tau, _, _, S = self.solve(theta)
         nA = alpha.size
+        keep = np.diag(S) > 0                # a frame where nothing was seen has no rigid unknowns to speak of
+        keep[-nA:] = True
+        S = S[np.ix_(keep, keep)]
         try:
             d = 1.0 / np.sqrt(np.maximum(np.diag(S), 1e-300))
             cov = (np.linalg.inv(S * np.outer(d, d)) * np.outer(d, d))[-nA:, -nA:]

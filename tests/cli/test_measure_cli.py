@@ -511,3 +511,44 @@ def test_both_fields_are_measured_as_instants_of_their_own(case, tmp_path):
         res = _measure(case, *extra, seq=woven, out=case["out"] / "x.npz")
         _assert_failed_cleanly(res, *words)
         assert not (case["out"] / "x.npz").exists()
+
+
+def test_jittered_and_dropped_frames_are_put_on_a_uniform_grid(case, tmp_path):
+    """A timestamps.csv whose times jitter (by up to 3 ms, rounded to 1 ms) and skip a frame (the fourth image
+    removed from every camera): the measurement file has the frames on a uniform grid (the estimators need a
+    constant interval): 10 frames, the missing one empty (nothing seen, views 0, named '(missing)'), the others'
+    positions those of the same images measured with --fps (bit for bit: the times do not enter the tracking),
+    the birth frames mapped onto the grid; --json's frame_grid says so, and a warning names the file. Times too
+    irregular for a grid exit 2 naming timestamps.csv."""
+    from heartcv.tracker.io import read_measurements
+
+    seq = case["seq"]
+    for cam in ("cam0", "cam1", "cam2"):
+        sorted((seq / cam).iterdir())[3].unlink()
+    (seq / "inputs.csv").unlink()
+    rng = np.random.default_rng(2)
+    kept = np.delete(np.arange(FRAMES), 3)
+    t = np.round(kept / 30.0 + rng.uniform(-0.003, 0.003, kept.size), 3)
+    (seq / "timestamps.csv").write_text("time_s\n" + "".join(f"{float(x)!r}\n" for x in t))
+    res = _measure(case, "--json", out=case["out"] / "g.npz")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["frame_grid"]["frames"] == FRAMES and s["frame_grid"]["missing_frames"] == 1
+    assert abs(s["frame_grid"]["interval_s"] - 1 / 30) < 5e-4 and "uniform grid" in res.stderr
+    g = read_measurements(case["out"] / "g.npz")
+    assert g.n_frames == FRAMES and np.allclose(np.diff(g.times), s["frame_grid"]["interval_s"], rtol=1e-9)
+    assert not np.isfinite(g.positions[3]).any() and not g.views[3].any() and g.meta["frame_names"][3] == "(missing)"
+    (seq / "timestamps.csv").unlink()
+    res = _measure(case, "--fps", 30, out=case["out"] / "u.npz")
+    assert res.exit_code == 0, res.output
+    u = read_measurements(case["out"] / "u.npz")
+    rows = np.r_[0:3, 4:FRAMES]
+    for field in ("positions", "covariances", "views"):
+        assert np.array_equal(getattr(g, field)[rows], getattr(u, field), equal_nan=True), field
+    assert g.meta["reference_frame_index"] == [int(rows[b]) for b in u.meta["reference_frame_index"]]
+    assert [g.meta["frame_names"][r] for r in rows] == u.meta["frame_names"]
+    t_bad = np.r_[kept[:4] / 30.0, kept[4] / 30.0 + 0.012, kept[5:] / 30.0]
+    (seq / "timestamps.csv").write_text("time_s\n" + "".join(f"{float(x)!r}\n" for x in t_bad))
+    res = _measure(case, out=case["out"] / "bad.npz")
+    _assert_failed_cleanly(res, "timestamps.csv", "time_s", "too irregular")
+    assert not (case["out"] / "bad.npz").exists()

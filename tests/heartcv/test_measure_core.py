@@ -373,3 +373,35 @@ def test_measurement_csv_lines():
         "0,0.0,9,1.0,2.0,3.0,4.0,1.0,1.0,5.0,2.0,6.0,2,0.25,10.0,11.0,12.0,13.0",
         "1,0.5,7,0.5,0.25,0.125,4.0,1.0,1.0,5.0,2.0,6.0,2,0.5,,,1.5,2.5",
     ]
+
+
+def test_frame_grid_puts_jittered_and_dropped_frames_on_their_points():
+    """frame_grid against the truth it was drawn from: 29.97 fps (an interval of 33.3667 ms, not a whole number of
+    ms) over 1 000 frames with frames 50, 51 and 700 dropped, each time jittered by up to 4 ms and rounded to 1 ms
+    (what capture software logs): every frame on its own grid point, the interval within 1e-6 s, the grid's
+    points within 1 ms of the true times, the offsets the jitter over the interval (to 0.6 ms). Equally spaced
+    times read as uniform (uniform_times), jittered ones not. Two frames less than half an interval apart, or one
+    0.4 of an interval off the grid, are refused naming the frame; expand_to_grid fills the dropped rows."""
+    from heartcv.measure_data import GRID_TOLERANCE, expand_to_grid, frame_grid, uniform_times
+
+    rng = np.random.default_rng(3)
+    dt = 1 / 29.97
+    true_index = np.delete(np.arange(1000), [50, 51, 700])
+    exact = true_index * dt
+    jitter = rng.uniform(-0.004, 0.004, exact.size)
+    t = np.round(exact + jitter, 3)
+    index, grid, got_dt, offset = frame_grid(t)
+    np.testing.assert_array_equal(index, true_index)
+    assert abs(got_dt - dt) < 1e-6 and grid.size == 1000
+    np.testing.assert_allclose(grid, np.arange(1000) * dt, atol=1e-3)
+    np.testing.assert_allclose(offset * got_dt, t - grid[index], atol=1e-12)
+    np.testing.assert_allclose(offset * got_dt, t - exact, atol=3e-4)          # the jitter and the rounding
+    assert np.abs(offset).max() < GRID_TOLERANCE
+    assert uniform_times(np.arange(10) * 0.04) and uniform_times([0.0]) and not uniform_times(t[:10])
+    with pytest.raises(ValueError, match="frames 3 and 4"):
+        frame_grid([0.0, 0.04, 0.08, 0.12, 0.13, 0.16, 0.2])
+    with pytest.raises(ValueError, match="frame 3 .* of an interval from a uniform grid"):
+        frame_grid(np.r_[np.arange(3) * 0.04, 3 * 0.04 + 0.4 * 0.04, np.arange(4, 12) * 0.04])
+    v = np.arange(6.0).reshape(3, 2)
+    np.testing.assert_array_equal(expand_to_grid(v, [0, 2, 3], 5, np.nan),
+                                  [[0, 1], [np.nan, np.nan], [2, 3], [4, 5], [np.nan, np.nan]])

@@ -1068,3 +1068,27 @@ def test_relearning_from_the_filtered_motion_finds_the_dynamics_the_fit_missed()
     e_new, e_rw, e_fit = err(out.block), err(rw), err(block(None))
     assert e_new < 0.92 * e_rw, (e_new, e_rw)
     assert e_new < 1.05 * e_fit, (e_new, e_fit)
+
+
+def test_a_frame_where_nothing_was_seen_inside_the_fitted_frames():
+    """A frame where no point was seen (a dropped frame on the measurement grid, or one whose images could not be
+    read) inside the fitted frames: the profiled rigid motion there lies on the line between its neighbours' (it
+    has no data of its own; before, the normal matrix's empty rows made the amplitudes' standard deviations NaN
+    and the estimators' block could not be built), the amplitudes and their standard deviations are finite and
+    within 2 standard deviations of the fit with that frame seen, and the block is built."""
+    m = _model(72.0)
+    sim = simulate(m, 4.0, np.random.default_rng(5), process_noise=False, initial_noise=False)
+    meas = to_measurements(sim)
+    K, j = 90, 37
+    pos = meas.positions.copy()
+    _, _, _, _, alpha0, sd0, _ = _fit_blind(meas, pos, K)
+    pos[j] = np.nan
+    cov = meas.covariances.copy()
+    cov[j] = np.nan
+    meas_gap = dataclasses.replace(meas, positions=pos, covariances=cov)
+    blind, hr, prob, res, alpha, sd, rigid = _fit_blind(meas_gap, pos, K)
+    assert np.isfinite(rigid).all() and np.isfinite(alpha).all() and np.isfinite(sd).all()
+    np.testing.assert_allclose(rigid[j], 0.5 * (rigid[j - 1] + rigid[j + 1]), rtol=1e-12, atol=1e-15)
+    assert np.all(np.abs(alpha - alpha0) < 2 * np.hypot(sd, sd0)), (alpha, alpha0, sd)
+    block = input_block_from_fit(hr.frequency_hz, HARMONICS, prob.dt, 1, 0, alpha, sd, rigid, blind.times[:K])
+    assert np.isfinite(block.std0).all()
