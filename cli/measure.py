@@ -173,7 +173,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     if count < 1:
         raise BadInput(f"{sequence}: no frame")
     _check_sizes(source, rig, count, rig_file)
-    times = _frame_times(recording, fps, start + count)[start:]   # a segment keeps the recording's clock
+    times = _frame_times(recording, fps, start + count, ref)[start:]   # a segment keeps the recording's clock
     if both:
         if count < 2:
             raise BadInput(f"--fields both: {count} frame; at least 2 are needed (the fields' times)")
@@ -181,7 +181,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
 
         times = field_times(times)
     stamps = seq / "timestamps.csv" if fps is None and (seq / "timestamps.csv").is_file() else None
-    grid = _grid(times, stamps)
+    grid = _grid(times, stamps or seq)
     file_times = times if grid is None else grid[1]
     in_names, in_units, in_values = _inputs(inputs_path, file_times, required=inputs_file is not None,
                                             times_from=stamps)
@@ -300,12 +300,21 @@ def _check_rig_scale(rig, rig_file):
     check_rig_scale(rig.cameras, rig_file)
 
 
-def _frame_times(source, fps, count):
+def _frame_times(source, fps, count, ref=0):
+    """The frames' times: ``timestamps.csv``, else ``--fps``, else the reference camera's video's own frame times
+    where its stated rate does not describe them (:func:`heartcv.measure_data.container_times`), else that rate,
+    else :data:`heartcv.measure_data.DEFAULT_FPS` with a warning."""
     from heartcv.io import read_timestamps
-    from heartcv.measure_data import DEFAULT_FPS, frame_times
+    from heartcv.measure_data import DEFAULT_FPS, container_times, frame_times
 
     ts = source.folder / "timestamps.csv"
     stamps = read_timestamps(ts, source.frame_names) if fps is None and ts.is_file() else None
+    if stamps is None and fps is None and source.kind == "video" and source.videos:
+        info = source.videos[0 if source.packing else ref]
+        stamps = container_times(info.times_s, source.fps, count)
+        if stamps is not None:
+            log.info("frame times from %s's own presentation times (%s): its frames are not at a constant rate",
+                     info.path, f"stated {source.fps:g} fps" if source.fps else "no rate stated")
     if stamps is None and fps is None and source.fps is None:
         log.warning("no timestamps.csv, no video frame rate and no --fps: assuming %g frames per second (the times, "
                     "and every rate fitted from them, scale with it; pass --fps)", DEFAULT_FPS)

@@ -14,7 +14,7 @@ import numpy as np
 from .tracker.files import InputError
 
 __all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "GRID_TOLERANCE",
-           "uniform_times", "frame_grid", "expand_to_grid", "inputs_at_frames",
+           "uniform_times", "frame_grid", "container_times", "expand_to_grid", "inputs_at_frames",
            "check_image_sizes", "truth_for_frames", "truth_statistics", "reference_pixels", "measurement_summary",
            "CSV_HEADER", "measurement_csv_lines"]
 
@@ -96,6 +96,22 @@ def frame_grid(times, tolerance: float = GRID_TOLERANCE):
                          f"uniform grid of {1e3 * dt:.6g} ms fitted to the frame times (at most {tolerance:g} "
                          "allowed): timing too irregular for a constant frame interval")
     return index, t0 + dt * np.arange(index[-1] + 1), float(dt), offset
+
+
+def container_times(times_s, fps: float | None, count: int):
+    """A video's own frame times (its container's presentation times, ``heartcv.video.VideoInfo.times_s``) for its
+    first ``count`` frames, from 0, when they are what the frames' timing is: when the container states no rate
+    (``fps`` None), or when some frame lies more than :data:`GRID_TOLERANCE` of an interval from ``k / fps`` (a
+    variable frame rate, dropped frames). None otherwise (the nominal rate describes the frames; times rounded by
+    the container do not count), and None without such times."""
+    if times_s is None:
+        return None
+    t = np.asarray(times_s, float)[:count]
+    t = t - t[0]
+    if fps is None:
+        return t
+    nominal = np.arange(t.size) / fps
+    return t if np.abs(t - nominal).max() * fps > GRID_TOLERANCE else None
 
 
 def expand_to_grid(values, index, count: int, fill):

@@ -552,3 +552,51 @@ def test_jittered_and_dropped_frames_are_put_on_a_uniform_grid(case, tmp_path):
     res = _measure(case, out=case["out"] / "bad.npz")
     _assert_failed_cleanly(res, "timestamps.csv", "time_s", "too irregular")
     assert not (case["out"] / "bad.npz").exists()
+
+
+def test_a_video_whose_own_times_skip_a_frame_goes_on_the_grid(case, tmp_path, monkeypatch):
+    """The rendered sequence as one MJPG video per camera (stated 30 fps). Where the videos' own presentation times
+    follow the stated rate (MJPG in AVI: k / 30 s), measure uses the rate as before. Where they skip an interval
+    after the fourth frame (a dropped frame; heartcv.video's probe reports it, stood in for here because OpenCV
+    writes only constant-rate videos), measure takes the container's times and puts the frames on the uniform
+    grid: 11 grid frames, the fifth empty, the others' positions those measured at the stated rate, bit for bit."""
+    import dataclasses
+
+    import cv2
+
+    from heartcv.tracker.io import read_measurements
+    import heartcv.video as video
+
+    vids = tmp_path / "vids"
+    vids.mkdir()
+    for cam in ("cam0", "cam1", "cam2"):
+        files = sorted((case["seq"] / cam).iterdir())
+        first = cv2.imread(str(files[0]))
+        w = cv2.VideoWriter(str(vids / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 30.0,
+                            (first.shape[1], first.shape[0]))
+        if not w.isOpened():
+            pytest.skip("this OpenCV build cannot write MJPG")
+        for f in files:
+            w.write(cv2.imread(str(f)))
+        w.release()
+    res = _measure(case, "--json", seq=vids, out=case["out"] / "rate.npz")
+    assert res.exit_code == 0, res.output
+    assert "frame_grid" not in json.loads(res.stdout) and "presentation times" not in res.stderr
+    rate = read_measurements(case["out"] / "rate.npz")
+    np.testing.assert_allclose(rate.times, np.arange(FRAMES) / 30.0, rtol=0, atol=1e-12)
+    real = video.check_videos
+
+    def skipping(paths, *a, **kw):
+        infos = real(paths, *a, **kw)
+        t = np.r_[np.arange(4), np.arange(5, FRAMES + 1)] / 30.0
+        return [dataclasses.replace(i, times_s=t) for i in infos]
+
+    monkeypatch.setattr(video, "check_videos", skipping)
+    res = _measure(case, "--json", seq=vids, out=case["out"] / "own.npz")
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["frame_grid"]["missing_frames"] == 1 and "presentation times" in res.stderr
+    own = read_measurements(case["out"] / "own.npz")
+    assert own.n_frames == FRAMES + 1 and not np.isfinite(own.positions[4]).any()
+    rows = np.r_[0:4, 5:FRAMES + 1]
+    for field in ("positions", "covariances", "views"):
+        assert np.array_equal(getattr(own, field)[rows], getattr(rate, field), equal_nan=True), field

@@ -405,3 +405,19 @@ def test_frame_grid_puts_jittered_and_dropped_frames_on_their_points():
     v = np.arange(6.0).reshape(3, 2)
     np.testing.assert_array_equal(expand_to_grid(v, [0, 2, 3], 5, np.nan),
                                   [[0, 1], [np.nan, np.nan], [2, 3], [4, 5], [np.nan, np.nan]])
+
+
+def test_container_times_are_used_only_where_the_stated_rate_does_not_hold():
+    """container_times: a video's own times rounded by its container (25 fps, times to the millisecond, off k/25
+    by under 0.5 ms) are not used (None: the stated rate describes the frames); a variable rate or a dropped frame
+    (a frame half an interval or more off k / fps) is, from 0; without a stated rate they are; without times None."""
+    from heartcv.measure_data import container_times
+
+    k = np.arange(50)
+    assert container_times(np.round(2.0 + k / 25.0, 3), 25.0, 50) is None
+    dropped = np.r_[k[:20], k[21:51]] / 25.0 + 2.0
+    np.testing.assert_allclose(container_times(dropped, 25.0, 40), dropped[:40] - 2.0)
+    vfr = 2.0 + np.cumsum(np.r_[0.0, np.full(49, 1 / 30.0)])
+    np.testing.assert_allclose(container_times(vfr, 25.0, 50), vfr - 2.0)
+    np.testing.assert_allclose(container_times(np.round(k / 25.0, 3), None, 10), np.round(k / 25.0, 3)[:10])
+    assert container_times(None, 25.0, 50) is None
