@@ -9,14 +9,16 @@ camera, array) and no file; the caller attaches the file (:meth:`InputError.in_f
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .tracker.files import InputError
 
 __all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "GRID_TOLERANCE",
-           "uniform_times", "frame_grid", "container_times", "expand_to_grid", "inputs_at_frames",
-           "check_image_sizes", "truth_for_frames", "truth_statistics", "reference_pixels", "measurement_summary",
-           "CSV_HEADER", "measurement_csv_lines"]
+           "uniform_times", "frame_grid", "container_times", "expand_to_grid", "rectified_v_offsets",
+           "inputs_at_frames", "check_image_sizes", "truth_for_frames", "truth_statistics", "reference_pixels",
+           "measurement_summary", "CSV_HEADER", "measurement_csv_lines"]
 
 # inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
 UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
@@ -119,6 +121,38 @@ def expand_to_grid(values, index, count: int, fill):
     values = np.asarray(values)
     out = np.full((count,) + values.shape[1:], fill, dtype=values.dtype)
     out[np.asarray(index)] = values
+    return out
+
+
+def rectified_v_offsets(uv, ref: int = 0):
+    """The vertical offset of every camera's views from the reference camera's in a rectified rig's measurement:
+    ``[(offset_px, standard_error_px, tracks)]`` per camera (the reference camera's ``(0, 0, 0)``; NaN where fewer
+    than 3 tracks were seen in both). In a rectified pair a surface point lies on the same row in every view, so a
+    camera whose observations lie ``offset`` px below the reference camera's on average (``v_c - v_ref``) was
+    rectified ``offset`` px off; its principal point ``cy + offset`` describes it. Per track the median of
+    ``v_c - v_ref`` over the frames seen in both (a track's frames share its template, so they are not independent
+    samples); then the median over tracks, and ``1.4826 MAD / sqrt(tracks)`` its standard error.
+
+    Parameters
+    ----------
+    uv : ndarray (K, P, C, 2)   observed pixels (NaN: not observed)
+    """
+    uv = np.asarray(uv, float)
+    K, P, C, _ = uv.shape
+    out = []
+    for c in range(C):
+        if c == ref:
+            out.append((0.0, 0.0, 0))
+            continue
+        d = uv[:, :, c, 1] - uv[:, :, ref, 1]                        # (K, P)
+        have = np.isfinite(d).any(axis=0)
+        if have.sum() < 3:
+            out.append((math.nan, math.nan, int(have.sum())))
+            continue
+        per_track = np.nanmedian(d[:, have], axis=0)
+        med = float(np.median(per_track))
+        se = 1.4826 * float(np.median(np.abs(per_track - med))) / math.sqrt(per_track.size)
+        out.append((med, se, int(per_track.size)))
     return out
 
 
