@@ -108,10 +108,10 @@ MAX_WORKERS = 1024
               help="With --fields both: which field was taken first (top: rows 0, 2, ...); auto: from the first "
                    "frames' motion (top when they cannot tell, with a warning).")
 @click.option("--vertical-offset", type=click.Choice(["auto", "none"]), default="auto", show_default=True,
-              help="A rig of a pre-rectified pair (heartcv rig rectified): auto measures how far each camera's views "
-                   "lie below the reference camera's in the first frames (a pair rectified slightly off) and, where "
-                   "that is significant, measures with its principal point moved by it; none: the rig as given. "
-                   "Other rigs are used as given.")
+              help="A rig of a pre-rectified pair (heartcv rig rectified), sparse mode: auto measures how far each "
+                   "camera's views lie below the reference camera's in the first frames (a pair rectified slightly "
+                   "off) and, where that is significant, measures with its principal point moved by it; none: the rig "
+                   "as given. Other rigs, and --dense, use the rig as given.")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False), default=None,
               help="Render truth (truth.npz of `heartcv render sequence`): report the 3-D error of every point.")
 @click.option("--csv", "csv_file", type=click.Path(dir_okay=False), default=None,
@@ -214,7 +214,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
             reader = FieldInstants(reader, first_field)
             order = ("top", "bottom") if first_field == 0 else ("bottom", "top")
             instant_names = [f"{n}.{f}" for n in instant_names for f in order]
-        if vertical_offset == "auto" and rig.meta.get("rectified") and len(rig) >= 2:
+        if vertical_offset == "auto" and rig.meta.get("rectified") and len(rig) >= 2 and not dense:
             rig = _rectified_offsets(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense,
                                      sizing, ref)
         run = _run(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense, sizing)
