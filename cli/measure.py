@@ -535,13 +535,10 @@ def _field_order(reader, count, ref, roi, asked, camera, sizing) -> int:
     when its frames' votes are a majority a binomial sign test finds at the 5 % level, else top with a warning.
     Records ``combing_ratio``, ``field_order`` (and for auto ``field_order_votes``, ``_pairs`` and ``_ratio``) in
     ``sizing``; warns when the frames do not look interlaced."""
-    from scipy.stats import binom
-
-    from heartcv.measure import COMBING_RATIO, field_order, frames_combing_ratio
+    from heartcv.measure import COMBING_RATIO, field_order, field_order_clear, frames_combing_ratio
 
     frames = [reader.read(k)[0][ref] for k in range(min(count, 30))]
-    mask = None if roi is None else roi
-    comb = frames_combing_ratio([f for f in frames if f is not None], mask)
+    comb = frames_combing_ratio([f for f in frames if f is not None], roi)
     sizing["combing_ratio"] = comb if math.isfinite(comb) else None
     if not (math.isfinite(comb) and comb > COMBING_RATIO):
         log.warning("--fields both: camera %s's first frames do not look interlaced (combing ratio %s; interlaced "
@@ -550,11 +547,10 @@ def _field_order(reader, count, ref, roi, asked, camera, sizing) -> int:
     if asked != "auto":
         first = 0 if asked == "top" else 1
     else:
-        first, ratio, votes, pairs = field_order(frames, mask)
+        first, ratio, votes, pairs = field_order(frames, roi)
         sizing.update(field_order_votes=votes, field_order_pairs=pairs,
                       field_order_ratio=ratio if math.isfinite(ratio) else None)
-        p = float(binom.sf(votes - 1, pairs, 0.5)) if pairs else 1.0
-        if p >= 0.05:
+        if not field_order_clear(votes, pairs):
             log.warning("--fields both: the first %d frames do not tell which field was taken first (%d of %d "
                         "votes, ratio %s): assuming the top field (--field-order top|bottom to choose)", len(frames),
                         votes, pairs, f"{ratio:.3g}" if math.isfinite(ratio) else "undefined")
@@ -592,10 +588,8 @@ def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, ri
     px measured with the rig as given, 0.455 with the rig moved by that), so the offset is measured once more with
     the moved rig and that is used. Recorded in ``sizing["vertical_offsets_px"]``. A probe that fails leaves the rig
     as it is (the run that follows says why)."""
-    from dataclasses import replace
-
     from heartcv.camera import Rig
-    from heartcv.measure_data import rectified_v_offsets
+    from heartcv.measure_data import rectified_cameras, rectified_v_offsets
     from heartcv.tracker.files import InputError
 
     n = min(count, PROBE_FRAMES)
@@ -616,21 +610,10 @@ def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, ri
             logger.setLevel(level)
         return rectified_v_offsets(run.result.uv, ref)
 
-    def moved(r, offsets, cams_to_move):
-        cams = list(r.cameras)
-        cy_ref = float(np.asarray(cams[ref].K)[1, 2])
-        for c in cams_to_move:
-            K = np.array(cams[c].K, float)
-            K[1, 2] = cy_ref + offsets[c][0]
-            cams[c] = replace(cams[c], K=K)
-        return Rig(tuple(cams), dict(r.meta))
-
     first = probe(rig)
     if first is None:
         return rig
-    cy = [float(np.asarray(cam.K)[1, 2]) for cam in rig.cameras]
-    significant = [c for c, (off, se, _) in enumerate(first) if c != ref and math.isfinite(off) and math.isfinite(se)
-                   and abs(off - (cy[c] - cy[ref])) > 3 * se]          # the rig's own offset: cy_c - cy_ref
+    cams, significant = rectified_cameras(rig.cameras, first, ref)
     for c, (off, se, tracks) in enumerate(first):
         if c != ref and c not in significant and math.isfinite(off):
             log.info("rectified pair: camera %s's views lie %+.3f ± %.3f px below camera %s's (%d tracks of the first "
@@ -639,7 +622,7 @@ def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, ri
     sizing["vertical_offsets_px"] = {}
     if not significant:
         return rig
-    second = probe(moved(rig, first, significant)) or first
+    second = probe(Rig(tuple(cams), dict(rig.meta))) or first
     offsets = [second[c] if c in significant and math.isfinite(second[c][0]) else first[c] for c in range(len(first))]
     for c in significant:
         off, se, tracks = offsets[c]
@@ -648,7 +631,7 @@ def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, ri
                  "none to keep the rig as given)", rig.cameras[c].name, off, se, rig.cameras[ref].name, tracks, n,
                  first[c][0])
         sizing["vertical_offsets_px"][rig.cameras[c].name] = off
-    return moved(rig, offsets, significant)
+    return Rig(tuple(rectified_cameras(rig.cameras, offsets, ref, among=significant)[0]), dict(rig.meta))
 
 
 def _grid(times, stamps):

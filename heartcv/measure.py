@@ -64,8 +64,8 @@ from .triangulation import triangulate
 __all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_factor",
            "MIN_REDUCED_SIDE_PX", "REDUCTION_STEP", "auto_reduction", "reduced_size", "reduce_image", "reduce_mask",
            "reduced_camera", "field_image", "field_camera", "WorkingView", "COMBING_RATIO", "combing_ratio",
-           "frames_combing_ratio", "auto_field", "bob_field", "FieldInstants", "field_order", "MeasureResult",
-           "Highlights",
+           "frames_combing_ratio", "auto_field", "bob_field", "FieldInstants", "field_order", "field_order_clear",
+           "MeasureResult", "Highlights",
            "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
            "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
            "assemble_result"]
@@ -404,6 +404,14 @@ def field_order(frames, mask=None) -> tuple[int, float, int, int]:
         return 0, ratio, 0, 0
     first = 0 if 2 * top_votes > pairs else 1
     return first, ratio, top_votes if first == 0 else pairs - top_votes, pairs
+
+
+def field_order_clear(votes: int, pairs: int, level: float = 0.05) -> bool:
+    """Whether :func:`field_order`'s ``votes`` of ``pairs`` tell the order: a one-sided binomial sign test (each
+    frame's vote a fair coin if they cannot tell) below ``level``."""
+    from scipy.stats import binom
+
+    return pairs > 0 and float(binom.sf(votes - 1, pairs, 0.5)) < level
 
 
 def auto_reduction(frames, mask=None) -> tuple[float, float, float]:

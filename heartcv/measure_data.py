@@ -17,8 +17,8 @@ from .tracker.files import InputError
 
 __all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "GRID_TOLERANCE",
            "uniform_times", "frame_grid", "container_times", "expand_to_grid", "rectified_v_offsets",
-           "inputs_at_frames", "check_image_sizes", "truth_for_frames", "truth_statistics", "reference_pixels",
-           "measurement_summary", "CSV_HEADER", "measurement_csv_lines"]
+           "rectified_cameras", "inputs_at_frames", "check_image_sizes", "truth_for_frames", "truth_statistics",
+           "reference_pixels", "measurement_summary", "CSV_HEADER", "measurement_csv_lines"]
 
 # inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
 UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
@@ -154,6 +154,27 @@ def rectified_v_offsets(uv, ref: int = 0):
         se = 1.4826 * float(np.median(np.abs(per_track - med))) / math.sqrt(per_track.size)
         out.append((med, se, int(per_track.size)))
     return out
+
+
+def rectified_cameras(cameras, offsets, ref: int = 0, among=None, sigmas: float = 3.0):
+    """``(cameras, moved)``: a rectified rig's cameras with each camera whose measured vertical offset
+    (:func:`rectified_v_offsets`) differs from the rig's own (``cy_c - cy_ref``) by more than ``sigmas`` standard
+    errors given the principal point ``cy_ref + offset``; ``moved`` the indices of those cameras. ``among``: only
+    these cameras may move (default: every one but the reference)."""
+    from dataclasses import replace
+
+    cams = list(cameras)
+    cy = [float(np.asarray(c.K)[1, 2]) for c in cams]
+    moved = []
+    for c, (off, se, _) in enumerate(offsets):
+        if c == ref or (among is not None and c not in among) or not (math.isfinite(off) and math.isfinite(se)):
+            continue
+        if among is not None or abs(off - (cy[c] - cy[ref])) > sigmas * se:
+            K = np.array(cams[c].K, float)
+            K[1, 2] = cy[ref] + off
+            cams[c] = replace(cams[c], K=K)
+            moved.append(c)
+    return cams, moved
 
 
 def field_times(times) -> np.ndarray:

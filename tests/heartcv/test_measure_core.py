@@ -444,3 +444,29 @@ def test_rectified_v_offsets_per_track_median():
     per = np.nanmedian(uv[:, :, 1, 1] - uv[:, :, 0, 1], axis=0)
     assert o1 == pytest.approx(np.median(per)) and s1 == pytest.approx(1.4826 * np.median(np.abs(per - o1)) / 20)
     assert abs(o1 - 0.45) < 3 * s1 and 0.005 < s1 < 0.02
+
+
+def test_rectified_cameras_moves_only_significant_offsets():
+    """rectified_cameras: a camera whose measured offset differs from the rig's cy difference by more than 3
+    standard errors gets cy = cy_ref + offset, others keep theirs; with ``among`` exactly those move; the
+    reference never."""
+    from heartcv.camera import Camera
+    from heartcv.measure_data import rectified_cameras
+
+    K = np.array([[390.0, 0, 179.5], [0, 390.0, 143.5], [0, 0, 1]])
+    K2 = K.copy()
+    K2[1, 2] = 143.9
+    cams = [Camera("a", 360, 288, K), Camera("b", 360, 288, K), Camera("c", 360, 288, K2)]
+    offsets = [(0.0, 0.0, 0), (0.45, 0.01, 300), (0.42, 0.01, 300)]     # c: 0.42 against the rig's 0.4
+    out, moved = rectified_cameras(cams, offsets, 0)
+    assert moved == [1] and out[1].K[1, 2] == pytest.approx(143.95) and out[2] is cams[2] and out[0] is cams[0]
+    out, moved = rectified_cameras(cams, offsets, 0, among=[2])
+    assert moved == [2] and out[2].K[1, 2] == pytest.approx(143.92) and out[1] is cams[1]
+
+
+def test_field_order_clear_is_a_sign_test():
+    """field_order_clear: one-sided binomial sign test at 5 % (9 of 10: p = 0.011; 8 of 10: 0.055)."""
+    from heartcv.measure import field_order_clear
+
+    assert field_order_clear(9, 10) and not field_order_clear(8, 10)
+    assert field_order_clear(23, 28) and not field_order_clear(4, 4) and not field_order_clear(0, 0)
