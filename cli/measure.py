@@ -214,7 +214,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
             reader = FieldInstants(reader, first_field)
             order = ("top", "bottom") if first_field == 0 else ("bottom", "top")
             instant_names = [f"{n}.{f}" for n in instant_names for f in order]
-        if vertical_offset == "auto" and rig.meta.get("rectified") and len(rig) >= 2 and not dense:
+        if vertical_offset == "auto" and rig.meta.get("rectified") and len(rig) >= 2:
             rig = _rectified_offsets(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense,
                                      sizing, ref)
         run = _run(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense, sizing)
@@ -565,6 +565,23 @@ def _field_order(reader, count, ref, roi, asked, camera, sizing) -> int:
 PROBE_FRAMES = 30
 """Instants measured first, for :func:`_rectified_offsets`: a second at 30 fps, several hundred tracks."""
 
+PROBE_ROUNDS = 6
+"""At most this many probes of :func:`_rectified_offsets`. Each moves the rig to the offset it measured; the matching
+refines a view's match at most ``match_points``' ``refine_2d_px`` (1 px) off the rig's epipolar line, so an offset of
+a few pixels takes a round per pixel or so."""
+
+DESCRIPTOR_FRAMES = 5
+"""Instants (spread over the probe's) whose views :func:`_rectified_offsets` matches by SIFT descriptors."""
+
+DESCRIPTOR_BIAS_PX = 0.1
+"""How far SIFT's pooled vertical offset may lie from the truth (measured: 0.03-0.1 px on shifted noise textures,
++0.06 px on the in-vivo heart against measure's own tracks): ``--dense``, which has no probe of its own, moves a
+camera only where the descriptors' offset differs from the rig's by more than this plus three standard errors."""
+
+DESCRIPTOR_REACH_PX = 1.0
+"""The probes start from the descriptors' offset where it lies farther than this from the rig's: how far off the
+rig's epipolar line the matching refines a match (``heartcv.matching.match_points``' ``refine_2d_px``)."""
+
 
 class _Prefix:
     """The first ``n`` instants of a reader (``read`` and iteration), for a probe run."""
@@ -582,17 +599,27 @@ class _Prefix:
 def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense, sizing, ref):
     """``--vertical-offset auto`` for a rectified rig: measure the first :data:`PROBE_FRAMES` instants quietly,
     take each camera's vertical offset from the reference camera's views (:func:`heartcv.measure_data.
-    rectified_v_offsets`) and, where it exceeds three standard errors, give that camera the principal point that
-    puts its views there (``cy_ref`` + the offset, with the rig's focal lengths). The matching searches around the
-    rig's geometry, which pulls the measured offset towards the rig's by about a tenth (on the in-vivo heart: 0.415
-    px measured with the rig as given, 0.455 with the rig moved by that), so the offset is measured once more with
-    the moved rig and that is used. Recorded in ``sizing["vertical_offsets_px"]``. A probe that fails leaves the rig
-    as it is (the run that follows says why)."""
+    rectified_v_offsets`) and, where it differs from the rig's by more than three standard errors, give that camera
+    the principal point that puts its views there (``cy_ref`` + the offset, with the rig's focal lengths;
+    :func:`heartcv.measure_data.rectified_cameras`).
+
+    The matching searches around the rig's geometry and refines a match at most a pixel off it, which pulls the
+    measured offset towards the rig's: by about a tenth for half a pixel (the in-vivo heart: 0.415 px measured with
+    the rig as given, 0.455 with the rig moved by that), to under a pixel for three (0.67 px measured where 2.96 are
+    true); several pixels off it finds wrong matches on the rig's rows and no offset at all. So the offset is first
+    measured without the rig, by SIFT descriptors matched between :data:`DESCRIPTOR_FRAMES` of the probe's instants
+    (:func:`heartcv.matching.descriptor_v_offset`), and where that lies more than :data:`DESCRIPTOR_REACH_PX` from
+    the rig's, the probes start from it; then the probe is repeated with the moved rig until no camera moves by more
+    than three standard errors (at most :data:`PROBE_ROUNDS` probes, a warning if it still moves), and the last
+    measurement is used. Recorded in ``sizing["vertical_offsets_px"]``. A probe that fails leaves the rig as the
+    last one that worked (the run that follows says why)."""
     from heartcv.camera import Rig
+    from heartcv.matching import descriptor_v_offset
     from heartcv.measure_data import rectified_cameras, rectified_v_offsets
     from heartcv.tracker.files import InputError
 
     n = min(count, PROBE_FRAMES)
+    names = [c.name for c in rig.cameras]
 
     def probe(r):
         logger = logging.getLogger("heartcv")
@@ -603,35 +630,76 @@ def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, ri
                        quiet=True)
         except (StageFailed, InputError) as exc:
             logger.setLevel(level)
-            log.info("--vertical-offset auto: the first %d instants could not be measured (%s); the rig as given", n,
-                     getattr(exc, "message", exc))
+            log.info("--vertical-offset auto: the first %d instants could not be measured (%s); the rig as %s", n,
+                     getattr(exc, "message", exc), "given" if r is rig else "last measured")
             return None
         finally:
             logger.setLevel(level)
         return rectified_v_offsets(run.result.uv, ref)
 
-    first = probe(rig)
+    cy = [float(np.asarray(c.K)[1, 2]) for c in rig.cameras]
+    views = [reader.read(k)[0] for k in np.unique(np.linspace(0, n - 1, DESCRIPTOR_FRAMES).round().astype(int))]
+    described = [(0.0, 0.0, 0) if c == ref else descriptor_v_offset([(v[ref], v[c]) for v in views], roi)
+                 for c in range(len(rig))]
+    sizing["vertical_offsets_px"] = {}
+    if dense:
+        moved = [c for c, (off, se, _) in enumerate(described) if c != ref and math.isfinite(off) and
+                 abs(off - (cy[c] - cy[ref])) > 3.0 * se + DESCRIPTOR_BIAS_PX]
+        for c, (off, se, matches) in enumerate(described):
+            if c != ref and math.isfinite(off):
+                log.info("rectified pair: SIFT descriptors matched between the views put camera %s's %+.2f ± %.2f px "
+                         "below camera %s's (%d matches of %d instants; the rig's %+.2f px): %s", names[c], off, se,
+                         names[ref], matches, len(views), cy[c] - cy[ref],
+                         "measuring with its principal point there (--vertical-offset none to keep the rig as given)"
+                         if c in moved else "the rig as given")
+                if c in moved:
+                    sizing["vertical_offsets_px"][names[c]] = off
+        return Rig(tuple(rectified_cameras(rig.cameras, described, ref, among=moved)[0]), dict(rig.meta)) if moved \
+            else rig
+    far = [c for c, (off, _, _) in enumerate(described)
+           if c != ref and math.isfinite(off) and abs(off - (cy[c] - cy[ref])) > DESCRIPTOR_REACH_PX]
+    start = rig
+    if far:
+        start = Rig(tuple(rectified_cameras(rig.cameras, described, ref, among=far)[0]), dict(rig.meta))
+        for c in far:
+            log.info("rectified pair: SIFT descriptors matched between the views put camera %s's %+.2f px below "
+                     "camera %s's (%d matches), farther than the matching reaches from the rig's %+.2f px: probing "
+                     "from there", names[c], described[c][0], names[ref], described[c][2], cy[c] - cy[ref])
+    first = probe(start)
     if first is None:
         return rig
-    cams, significant = rectified_cameras(rig.cameras, first, ref)
+    last, current, moved, rounds = first, start, list(far), 1
     for c, (off, se, tracks) in enumerate(first):
-        if c != ref and c not in significant and math.isfinite(off):
+        if c != ref and c not in far and math.isfinite(off) and c not in rectified_cameras(rig.cameras, first, ref)[1]:
             log.info("rectified pair: camera %s's views lie %+.3f ± %.3f px below camera %s's (%d tracks of the first "
-                     "%d instants), as the rig has them: the rig as given", rig.cameras[c].name, off, se,
-                     rig.cameras[ref].name, tracks, n)
-    sizing["vertical_offsets_px"] = {}
-    if not significant:
+                     "%d instants), as the rig has them: the rig as given", names[c], off, se, names[ref], tracks, n)
+    while True:
+        cams, significant = rectified_cameras(current.cameras, last, ref)
+        if not significant:
+            break
+        moved += [c for c in significant if c not in moved]
+        if rounds == PROBE_ROUNDS:
+            log.warning("rectified pair: the vertical offset still moved by more than three standard errors in the "
+                        "last of %d probes (camera %s: %+.3f px): the pair may be rectified several pixels off; "
+                        "measuring with the last one (rectify the pair again, or --vertical-offset none for the rig "
+                        "as given)", rounds, ", ".join(names[c] for c in significant), last[significant[0]][0])
+            break
+        current = Rig(tuple(cams), dict(rig.meta))
+        m = probe(current)
+        if m is None:
+            break
+        last = [m[c] if math.isfinite(m[c][0]) else last[c] for c in range(len(m))]
+        rounds += 1
+    if not moved:
         return rig
-    second = probe(Rig(tuple(cams), dict(rig.meta))) or first
-    offsets = [second[c] if c in significant and math.isfinite(second[c][0]) else first[c] for c in range(len(first))]
-    for c in significant:
-        off, se, tracks = offsets[c]
+    for c in moved:
+        off, se, tracks = last[c]
+        was = f"SIFT descriptors {described[c][0]:+.3f}" if c in far else f"{first[c][0]:+.3f} with the rig as given"
         log.info("rectified pair: camera %s's views lie %+.3f ± %.3f px below camera %s's (%d tracks of the first %d "
-                 "instants; %+.3f with the rig as given): measuring with its principal point there (--vertical-offset "
-                 "none to keep the rig as given)", rig.cameras[c].name, off, se, rig.cameras[ref].name, tracks, n,
-                 first[c][0])
-        sizing["vertical_offsets_px"][rig.cameras[c].name] = off
-    return Rig(tuple(rectified_cameras(rig.cameras, offsets, ref, among=significant)[0]), dict(rig.meta))
+                 "instants, %d probes; %s): measuring with its principal point there (--vertical-offset none to keep "
+                 "the rig as given)", names[c], off, se, names[ref], tracks, n, rounds, was)
+        sizing["vertical_offsets_px"][names[c]] = off
+    return Rig(tuple(rectified_cameras(rig.cameras, last, ref, among=moved)[0]), dict(rig.meta))
 
 
 def _grid(times, stamps):

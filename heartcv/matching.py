@@ -29,7 +29,7 @@ import numpy as np
 from .backend import OpenCVBackend
 
 __all__ = ["MatchResult", "match_points", "ray_depth_range", "patch_offsets", "normal_hypotheses",
-           "local_planes", "bisector_normals"]
+           "local_planes", "bisector_normals", "descriptor_v_offset"]
 
 
 @dataclass(frozen=True)
@@ -594,3 +594,67 @@ def _depth_per_pixel(cameras, ref, o, d, t):
         b = cam.project(o + (t + h)[:, None] * d)
         rate = np.maximum(rate, np.nan_to_num(np.linalg.norm(b - a, axis=1) / (2 * h)))
     return 1.0 / np.maximum(rate, 1e-9)
+
+
+def _gray8(image) -> np.ndarray:
+    """An image as 8-bit gray (SIFT's input): colour (BGR) to gray, other integer depths scaled by their range,
+    floating point stretched from its minimum to its maximum."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img[..., 0] if img.shape[2] == 1 else cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint8:
+        return img
+    if np.issubdtype(img.dtype, np.integer):
+        return (img.astype(np.float64) * (255.0 / np.iinfo(img.dtype).max)).round().clip(0, 255).astype(np.uint8)
+    img = img.astype(np.float32)
+    lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
+    return np.zeros(img.shape, np.uint8) if hi <= lo else cv2.convertScaleAbs(img, alpha=255.0 / (hi - lo),
+                                                                               beta=-255.0 * lo / (hi - lo))
+
+
+def descriptor_v_offset(pairs, mask=None, *, ratio=0.75, min_matches=20):
+    """The vertical offset of a rectified pair's second views from its first ones, measured without any geometry:
+    ``(offset_px, standard_error_px, matches)``, NaN offset and error where fewer than ``min_matches`` agree.
+
+    In a rectified pair a surface point lies on the same row in both views; where the pair was rectified off by
+    ``offset`` px, the second view's pixel lies that far below (``v_2 - v_1``). Geometry-guided matching cannot
+    see an offset larger than the reach of its search around the epipolar line; SIFT descriptors matched between
+    the views (Lowe's ratio test, ``ratio``) can. Over all pairs the matches' ``v_2 - v_1`` are pooled; their median,
+    then again the median of those within three robust standard deviations (1.4826 MAD, at least 0.5 px) of it;
+    the standard error ``1.4826 MAD / sqrt(matches)`` of those.
+
+    Parameters
+    ----------
+    pairs : sequence of (image, image)
+        Views of the same instants, first and second camera (gray or colour, any depth; None: skipped).
+    mask : ndarray (H, W), optional
+        Where the first views' features may lie (non-zero).
+    """
+    import cv2
+
+    sift = cv2.SIFT_create()
+    m8 = None if mask is None else (np.asarray(mask) > 0).astype(np.uint8) * 255
+    dv = []
+    for a, b in pairs:
+        if a is None or b is None:
+            continue
+        ka, da = sift.detectAndCompute(_gray8(a), m8)
+        kb, db = sift.detectAndCompute(_gray8(b), None)
+        if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+            continue
+        for pair in cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2):
+            if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
+                dv.append(kb[pair[0].trainIdx].pt[1] - ka[pair[0].queryIdx].pt[1])
+    dv = np.asarray(dv, float)
+    if dv.size < min_matches:
+        return float("nan"), float("nan"), int(dv.size)
+    med = float(np.median(dv))
+    spread = max(1.4826 * float(np.median(np.abs(dv - med))), 0.5)
+    inl = dv[np.abs(dv - med) <= 3.0 * spread]
+    if inl.size < min_matches:
+        return float("nan"), float("nan"), int(inl.size)
+    med = float(np.median(inl))
+    se = 1.4826 * float(np.median(np.abs(inl - med))) / np.sqrt(inl.size)
+    return med, se, int(inl.size)
