@@ -214,9 +214,11 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
             reader = FieldInstants(reader, first_field)
             order = ("top", "bottom") if first_field == 0 else ("bottom", "top")
             instant_names = [f"{n}.{f}" for n in instant_names for f in order]
+        matches = _descriptor_matches(reader, len(instant_names), ref, len(rig), roi)
         if vertical_offset == "auto" and rig.meta.get("rectified") and len(rig) >= 2:
             rig = _rectified_offsets(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense,
-                                     sizing, ref)
+                                     sizing, ref, matches)
+        _epipolar_check(matches, rig, ref, rig_file, sizing)
         run = _run(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense, sizing)
     wall = time.perf_counter() - t_start
     res = run.result
@@ -225,6 +227,8 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
                             instant_names, ref, hp, rig_file, inputs_path, grid)
     if (sizing or {}).get("vertical_offsets_px"):
         mset.meta["rig_vertical_offsets_px"] = dict(sizing["vertical_offsets_px"])
+    if (sizing or {}).get("epipolar_px"):
+        mset.meta["rig_epipolar_px"] = dict(sizing["epipolar_px"])
     if grid is not None:
         sizing = dict(sizing or {}, frame_grid={"interval_s": grid[2], "frames": int(grid[1].size),
                                                 "missing_frames": int(grid[1].size - len(times)),
@@ -571,7 +575,17 @@ refines a view's match at most ``match_points``' ``refine_2d_px`` (1 px) off the
 a few pixels takes a round per pixel or so."""
 
 DESCRIPTOR_FRAMES = 5
-"""Instants (spread over the probe's) whose views :func:`_rectified_offsets` matches by SIFT descriptors."""
+"""At most this many instants (spread over the probe's) whose views :func:`_descriptor_matches` matches by SIFT."""
+
+DESCRIPTOR_MATCHES = 500
+""":func:`_descriptor_matches` stops reading instants when every camera has this many SIFT matches."""
+
+EPIPOLAR_WARN_PX = 1.0
+""":func:`_epipolar_check` warns where the views' SIFT matches lie farther than this (median) from the rig's epipolar
+lines: how far off them the matching refines a match (``heartcv.matching.match_points``' ``refine_2d_px``)."""
+
+EPIPOLAR_MIN_MATCHES = 10
+"""Fewer SIFT matches than this say nothing in :func:`_epipolar_check` (a low-texture phantom's pair gives 18)."""
 
 DESCRIPTOR_BIAS_PX = 0.1
 """How far SIFT's pooled vertical offset may lie from the truth (measured: 0.03-0.1 px on shifted noise textures,
@@ -596,7 +610,55 @@ class _Prefix:
         return ((k, *self.reader.read(k)) for k in range(self.n))
 
 
-def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense, sizing, ref):
+def _descriptor_matches(reader, count, ref, cameras, roi):
+    """SIFT matches between the reference camera's views and each other camera's (:func:`heartcv.matching.
+    descriptor_matches`), for the rig-free checks (:func:`_rectified_offsets`, :func:`_epipolar_check`): camera ->
+    a list of ``(uv_ref, uv_c)`` per instant, over up to :data:`DESCRIPTOR_FRAMES` instants spread over the first
+    :data:`PROBE_FRAMES`, until every camera has :data:`DESCRIPTOR_MATCHES` (a textured HD view has them at once, a
+    low-resolution endoscope's take all five)."""
+    from heartcv.matching import descriptor_matches
+
+    n = min(count, PROBE_FRAMES)
+    out = {c: [] for c in range(cameras) if c != ref}
+    for k in np.unique(np.linspace(0, n - 1, DESCRIPTOR_FRAMES).round()):
+        views = reader.read(int(k))[0]
+        for c in out:
+            if views[ref] is not None and views[c] is not None:
+                out[c].append(descriptor_matches(views[ref], views[c], roi))
+        if all(sum(len(m[0]) for m in out[c]) >= DESCRIPTOR_MATCHES for c in out):
+            break
+    return out
+
+
+def _epipolar_check(matches, rig, ref, rig_file, sizing):
+    """Whether the rig describes the cameras that took the views: per camera the median symmetric epipolar distance
+    of the SIFT ``matches`` between its views and the reference camera's (:func:`_descriptor_matches`,
+    :func:`heartcv.matching.descriptor_epipolar_distance`), in ``sizing["epipolar_px"]`` (camera -> px; None where
+    too few matches), at DEBUG; a warning naming the rig file where it exceeds :data:`EPIPOLAR_WARN_PX`: the matching
+    searches a point's match along the rig's epipolar curve and refines it at most that far off it, so such a rig
+    finds few points, and wrong ones."""
+    from heartcv.matching import descriptor_epipolar_distance
+
+    if not matches:
+        return
+    sizing["epipolar_px"] = {}
+    for c, m in matches.items():
+        cam = rig.cameras[c]
+        med, n = descriptor_epipolar_distance(rig.cameras[ref], cam, m, min_matches=EPIPOLAR_MIN_MATCHES)
+        sizing["epipolar_px"][cam.name] = med if math.isfinite(med) else None
+        log.debug("epipolar check: %d SIFT matches between cameras %s and %s, median distance %.3g px from the rig's "
+                  "epipolar lines", n, rig.cameras[ref].name, cam.name, med)
+        if math.isfinite(med) and med > EPIPOLAR_WARN_PX:
+            log.warning("%s: the rig does not describe these cameras: SIFT features matched between camera %s's and "
+                        "camera %s's views lie a median %.2f px from the rig's epipolar lines (%d matches on %d of the "
+                        "first instants; a rig that describes them gives a fraction of a pixel). The matching looks "
+                        "for a point's match along those lines and at most %.0f px off them, so it finds few points, "
+                        "and wrong ones. A calibration from before the focus or zoom changed, swapped camera names, "
+                        "another rig's file? Recalibrate (heartcv calibrate) or check the rig's cameras", rig_file,
+                        rig.cameras[ref].name, cam.name, med, n, len(m), EPIPOLAR_WARN_PX)
+
+
+def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense, sizing, ref, matches):
     """``--vertical-offset auto`` for a rectified rig: measure the first :data:`PROBE_FRAMES` instants quietly,
     take each camera's vertical offset from the reference camera's views (:func:`heartcv.measure_data.
     rectified_v_offsets`) and, where it differs from the rig's by more than three standard errors, give that camera
@@ -638,18 +700,16 @@ def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, ri
         return rectified_v_offsets(run.result.uv, ref)
 
     cy = [float(np.asarray(c.K)[1, 2]) for c in rig.cameras]
-    views = [reader.read(k)[0] for k in np.unique(np.linspace(0, n - 1, DESCRIPTOR_FRAMES).round().astype(int))]
-    described = [(0.0, 0.0, 0) if c == ref else descriptor_v_offset([(v[ref], v[c]) for v in views], roi)
-                 for c in range(len(rig))]
+    described = [(0.0, 0.0, 0) if c == ref else descriptor_v_offset(matches[c]) for c in range(len(rig))]
     sizing["vertical_offsets_px"] = {}
     if dense:
         moved = [c for c, (off, se, _) in enumerate(described) if c != ref and math.isfinite(off) and
                  abs(off - (cy[c] - cy[ref])) > 3.0 * se + DESCRIPTOR_BIAS_PX]
-        for c, (off, se, matches) in enumerate(described):
+        for c, (off, se, found) in enumerate(described):
             if c != ref and math.isfinite(off):
                 log.info("rectified pair: SIFT descriptors matched between the views put camera %s's %+.2f ± %.2f px "
                          "below camera %s's (%d matches of %d instants; the rig's %+.2f px): %s", names[c], off, se,
-                         names[ref], matches, len(views), cy[c] - cy[ref],
+                         names[ref], found, len(matches[c]), cy[c] - cy[ref],
                          "measuring with its principal point there (--vertical-offset none to keep the rig as given)"
                          if c in moved else "the rig as given")
                 if c in moved:

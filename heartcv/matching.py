@@ -29,7 +29,8 @@ import numpy as np
 from .backend import OpenCVBackend
 
 __all__ = ["MatchResult", "match_points", "ray_depth_range", "patch_offsets", "normal_hypotheses",
-           "local_planes", "bisector_normals", "descriptor_v_offset"]
+           "local_planes", "bisector_normals", "descriptor_matches", "descriptor_v_offset",
+           "descriptor_epipolar_distance"]
 
 
 @dataclass(frozen=True)
@@ -614,39 +615,59 @@ def _gray8(image) -> np.ndarray:
                                                                                beta=-255.0 * lo / (hi - lo))
 
 
-def descriptor_v_offset(pairs, mask=None, *, ratio=0.75, min_matches=20):
+def descriptor_matches(a, b, mask=None, *, ratio=0.75, features=2000):
+    """SIFT features of view ``a`` matched in view ``b`` by Lowe's ratio test: ``(uv_a (N, 2), uv_b (N, 2))``, pixels
+    (gray or colour views of any depth; ``mask``: where ``a``'s features may lie, non-zero). No geometry is used, so
+    the matches say where the views agree whatever a rig says (some of them wrong: use robust statistics). At most
+    ``features`` per view, the strongest (a finely textured HD view holds tens of thousands, and brute-force
+    matching them takes tens of seconds)."""
+    import cv2
+
+    sift = cv2.SIFT_create(nfeatures=features)
+    m8 = None if mask is None else (np.asarray(mask) > 0).astype(np.uint8) * 255
+    ka, da = sift.detectAndCompute(_gray8(a), m8)
+    kb, db = sift.detectAndCompute(_gray8(b), None)
+    empty = (np.zeros((0, 2)), np.zeros((0, 2)))
+    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+        return empty
+    good = [p[0] for p in cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
+            if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    if not good:
+        return empty
+    return (np.array([ka[m.queryIdx].pt for m in good], float).reshape(-1, 2),
+            np.array([kb[m.trainIdx].pt for m in good], float).reshape(-1, 2))
+
+
+def descriptor_epipolar_distance(cam_a, cam_b, matches, *, min_matches=20):
+    """How far two calibrated cameras' views disagree with their epipolar geometry: ``(median_px, matches)``, the
+    median symmetric epipolar distance (:func:`heartcv.triangulation.epipolar_distance`, lens distortion included)
+    of ``matches`` between their views (a sequence of ``(uv_a (N, 2), uv_b (N, 2))``, e.g. :func:`descriptor_matches`
+    of a few instants), pooled; NaN with fewer than ``min_matches``. A rig that describes the cameras gives a fraction
+    of a pixel (the matches' own error; the wrong ones, fewer than half, do not move the median much); a calibration
+    from before the focus or zoom changed, swapped cameras or another rig's file give pixels to hundreds."""
+    from .triangulation import epipolar_distance
+
+    d = [epipolar_distance(cam_a, cam_b, ua, ub) for ua, ub in matches if len(ua)]
+    d = np.concatenate(d) if d else np.zeros(0)
+    d = d[np.isfinite(d)]
+    return (float(np.median(d)) if d.size >= min_matches else float("nan")), int(d.size)
+
+
+def descriptor_v_offset(matches, *, min_matches=20):
     """The vertical offset of a rectified pair's second views from its first ones, measured without any geometry:
     ``(offset_px, standard_error_px, matches)``, NaN offset and error where fewer than ``min_matches`` agree.
 
     In a rectified pair a surface point lies on the same row in both views; where the pair was rectified off by
     ``offset`` px, the second view's pixel lies that far below (``v_2 - v_1``). Geometry-guided matching cannot
     see an offset larger than the reach of its search around the epipolar line; SIFT descriptors matched between
-    the views (Lowe's ratio test, ``ratio``) can. Over all pairs the matches' ``v_2 - v_1`` are pooled; their median,
-    then again the median of those within three robust standard deviations (1.4826 MAD, at least 0.5 px) of it;
-    the standard error ``1.4826 MAD / sqrt(matches)`` of those.
-
-    Parameters
-    ----------
-    pairs : sequence of (image, image)
-        Views of the same instants, first and second camera (gray or colour, any depth; None: skipped).
-    mask : ndarray (H, W), optional
-        Where the first views' features may lie (non-zero).
+    the views (:func:`descriptor_matches`) can. Over all ``matches`` (a sequence of ``(uv_1 (N, 2), uv_2 (N, 2))``,
+    one per instant) their ``v_2 - v_1`` are pooled; their median, then again the median of those within three
+    robust standard deviations (1.4826 MAD, at least 0.5 px) of it; the standard error ``1.4826 MAD / sqrt(matches)``
+    of those. SIFT's sub-pixel positions are biased by a few hundredths of a pixel, more than that standard error
+    when there are thousands of matches.
     """
-    import cv2
-
-    sift = cv2.SIFT_create()
-    m8 = None if mask is None else (np.asarray(mask) > 0).astype(np.uint8) * 255
-    dv = []
-    for a, b in pairs:
-        if a is None or b is None:
-            continue
-        ka, da = sift.detectAndCompute(_gray8(a), m8)
-        kb, db = sift.detectAndCompute(_gray8(b), None)
-        if da is None or db is None or len(ka) < 2 or len(kb) < 2:
-            continue
-        for pair in cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2):
-            if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
-                dv.append(kb[pair[0].trainIdx].pt[1] - ka[pair[0].queryIdx].pt[1])
+    dv = [np.asarray(ub, float)[:, 1] - np.asarray(ua, float)[:, 1] for ua, ub in matches if len(ua)]
+    dv = np.concatenate(dv) if dv else np.zeros(0)
     dv = np.asarray(dv, float)
     if dv.size < min_matches:
         return float("nan"), float("nan"), int(dv.size)

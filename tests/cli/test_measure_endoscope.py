@@ -515,3 +515,33 @@ def test_dense_measures_a_pair_rectified_pixels_off_with_its_offset(pair, tmp_pa
     none, _ = _measure(pair, tmp_path / "n", "--dense", "--vertical-offset", "none", seq=seq)
     assert none.exit_code == 0, none.output
     assert json.loads(none.stdout)["points_mean"] < 0.7 * s["points_mean"], none.stdout
+
+
+def test_a_rig_that_does_not_describe_the_cameras_is_named(pair, tmp_path):
+    """Every rig is checked against its views: the median epipolar distance of SIFT matches between them
+    (`--json` `epipolar_px`, the file's `rig_epipolar_px`). The synthetic pair with its rig as a calibrated one (no
+    `rectified` flag): a fraction of a pixel, no warning. The same rig with the right camera tilted 1 degree about
+    the baseline (a calibration from before the endoscope changed): about f tan(1 deg) = 6.8 px, and a warning
+    naming the rig file and saying why few points follow."""
+    from heartcv.io import read_rig, write_rig
+    from heartcv.tracker.io import read_measurements
+
+    rig = read_rig(pair / "rig.yaml")
+    write_rig(tmp_path / "calibrated.yaml", type(rig)(rig.cameras))
+    res, out = _measure(pair, tmp_path / "a", rig=tmp_path / "calibrated.yaml")
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout)
+    assert s["epipolar_px"]["cam1"] < 0.3 and "does not describe" not in res.stderr, (s["epipolar_px"], res.stderr)
+    assert "vertical_offsets_px" not in s
+    assert read_measurements(out).meta["rig_epipolar_px"] == s["epipolar_px"]
+    c1 = rig.cameras[1]
+    th = np.radians(1.0)
+    tilt = np.array([[1, 0, 0], [0, np.cos(th), -np.sin(th)], [0, np.sin(th), np.cos(th)]])
+    T = np.array(c1.cam_from_rig, float)
+    T[:3] = tilt @ T[:3]
+    write_rig(tmp_path / "stale.yaml", type(rig)((rig.cameras[0], type(c1)(c1.name, c1.width, c1.height, c1.K,
+                                                                            c1.dist, T))))
+    res, _ = _measure(pair, tmp_path / "b", rig=tmp_path / "stale.yaml")
+    s = json.loads(res.stdout) if res.exit_code == 0 else None
+    assert "stale.yaml: the rig does not describe these cameras" in res.stderr, res.stderr
+    assert s is None or 5.0 < s["epipolar_px"]["cam1"] < 9.0, s

@@ -10,6 +10,8 @@ from heartcv.camera import Camera, pose_matrix
 from heartcv.features import detect_corners
 from heartcv.matching import (
     bisector_normals,
+    descriptor_epipolar_distance,
+    descriptor_matches,
     descriptor_v_offset,
     local_planes,
     match_points,
@@ -326,33 +328,86 @@ def _shifted_pair(rng, dx, dy, size=(240, 320)):
     return a, b
 
 
+def _offset(pairs, mask=None):
+    return descriptor_v_offset([descriptor_matches(a, b, mask) for a, b in pairs])
+
+
 @pytest.mark.parametrize("dy", [-6.3, 0.0, 0.45, 3.7])
 def test_descriptor_v_offset_recovers_a_vertical_shift(dy):
     """A rectified pair whose second views lie dy px below the first (a disparity of 40 px besides): the SIFT
     descriptors' pooled offset is dy within 0.1 px (no geometry involved; SIFT's sub-pixel positions are biased by a
     few hundredths of a pixel, more than the standard error of thousands of matches, so measure's probes refine it
-    with the rig's own matching); a mask that
-    keeps only the left half gives it too, from fewer matches; colour and 16-bit copies give the same."""
+    with the rig's own matching); a mask that keeps only the left half gives it too, from fewer matches; colour and
+    16-bit copies give the same."""
     rng = np.random.default_rng(11)
     pairs = [_shifted_pair(rng, 40.0, dy) for _ in range(3)]
-    off, se, n = descriptor_v_offset(pairs)
+    off, se, n = _offset(pairs)
     assert n >= 100 and abs(off - dy) < 0.1 and se < 0.05, (off, se, n)
     mask = np.zeros(pairs[0][0].shape, np.uint8)
     mask[:, :160] = 1
-    off_m, _, n_m = descriptor_v_offset(pairs, mask)
+    off_m, _, n_m = _offset(pairs, mask)
     assert 20 <= n_m < n and abs(off_m - dy) < 0.15, (off_m, n_m, n)
     colour = [(np.dstack([a] * 3), np.dstack([b] * 3)) for a, b in pairs]
     deep = [(a.astype(np.uint16) * 257, b.astype(np.uint16) * 257) for a, b in pairs]
-    assert descriptor_v_offset(colour)[0] == off and descriptor_v_offset(deep)[0] == off
+    assert _offset(colour)[0] == off and _offset(deep)[0] == off
 
 
 def test_descriptor_v_offset_without_texture_is_nan():
-    """Flat views (no features), unrelated textures (matches do not agree) and missing views: NaN, with the count."""
-    rng = np.random.default_rng(2)
+    """Flat views (no features) and unrelated textures (matches do not agree): NaN, with the count."""
     flat = np.full((120, 160), 90, np.uint8)
-    off, se, n = descriptor_v_offset([(flat, flat), (None, flat)])
+    off, se, n = _offset([(flat, flat)])
     assert np.isnan(off) and np.isnan(se) and n == 0
-    a, _ = _shifted_pair(rng, 0.0, 0.0)
+    a, _ = _shifted_pair(np.random.default_rng(2), 0.0, 0.0)
     _, b = _shifted_pair(np.random.default_rng(99), 0.0, 0.0)
-    off, se, n = descriptor_v_offset([(a, b)])
+    off, se, n = _offset([(a, b)])
     assert np.isnan(off) and n < 20, (off, n)
+
+
+def test_descriptor_matches_keeps_the_strongest_features():
+    """A finely textured HD-sized view holds tens of thousands of SIFT features; at most ``features`` are matched
+    (the view against itself: every match exact)."""
+    rng = np.random.default_rng(5)
+    a, _ = _shifted_pair(rng, 0.0, 0.0, size=(540, 960))
+    ua, ub = descriptor_matches(a, a, features=500)
+    assert 400 <= len(ua) <= 500 and np.abs(ua - ub).max() < 1e-3, len(ua)
+
+
+def test_descriptor_epipolar_distance_against_the_rig():
+    """Two calibrated cameras 6 mm apart (distortion included) seeing a textured plane: matches of their rendered
+    views lie a median < 0.3 px from the rig's epipolar lines; with the second camera tilted 1 degree about the
+    baseline in the rig (a stale calibration) they lie ~ f tan(1 deg) = 7 px off (5-10); with the cameras swapped
+    over 1 px (2 px: a nearly horizontal baseline keeps most of the rows); no matches: NaN."""
+    import cv2
+
+    from heartcv.camera import Camera, pose_matrix
+
+    w, h, f = 320, 240, 400.0
+    K = np.array([[f, 0, 159.5], [0, f, 119.5], [0, 0, 1.0]])
+    dist = np.array([-0.05, 0.01, 0, 0, 0])
+    cams = [Camera("a", w, h, K, dist, pose_matrix(np.eye(3), np.zeros(3))),
+            Camera("b", w, h, K, dist, pose_matrix(cv2.Rodrigues(np.array([0.0, 0.03, 0.0]))[0],
+                                                   np.array([-0.006, 0.0005, 0.0])))]
+    rng = np.random.default_rng(8)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (600, 600)).astype(np.float32), (0, 0), 1.2)
+    tex = cv2.normalize(tex, None, 10, 245, cv2.NORM_MINMAX)
+    # the plane z = 40 mm (rig frame), textured at 0.1 mm per texel around the optical axis; each view by remap
+    views = []
+    for cam in cams:
+        uu, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+        o, d = cam.rays(np.c_[uu.ravel(), vv.ravel()])
+        t = (0.04 - o[:, 2]) / d[:, 2]
+        X = o + t[:, None] * d
+        mx = (X[:, 0] / 1e-4 + 300).reshape(h, w).astype(np.float32)
+        my = (X[:, 1] / 1e-4 + 300).reshape(h, w).astype(np.float32)
+        views.append(cv2.remap(tex, mx, my, cv2.INTER_CUBIC).astype(np.uint8))
+    m = [descriptor_matches(views[0], views[1])]
+    med, n = descriptor_epipolar_distance(cams[0], cams[1], m)
+    assert n >= 100 and med < 0.3, (med, n)
+    R, tvec = cams[1].cam_from_rig[:3, :3], cams[1].cam_from_rig[:3, 3]
+    tilt = cv2.Rodrigues(np.array([np.radians(1.0), 0.0, 0.0]))[0]
+    stale = Camera("b", w, h, K, dist, pose_matrix(tilt @ R, tilt @ tvec))
+    med_t, _ = descriptor_epipolar_distance(cams[0], stale, m)
+    assert 5.0 < med_t < 10.0, med_t
+    med_s, _ = descriptor_epipolar_distance(cams[1], cams[0], m)
+    assert med_s > 1.0, med_s
+    assert np.isnan(descriptor_epipolar_distance(cams[0], cams[1], [(np.zeros((0, 2)), np.zeros((0, 2)))])[0])
