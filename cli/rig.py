@@ -122,8 +122,18 @@ def import_(files, fmt, units, names, image_sizes, output, as_json):
 
 
 @rig.command("rectified")
-@click.option("--image-size", type=ImageSize(), required=True, metavar="WxH", help="Image size of both cameras.")
-@click.option("--focal-px", type=Float(0, 1e6, lo_open=True), required=True, help="Focal length f in pixels.")
+@click.option("--image-size", type=ImageSize(), default=None, metavar="WxH",
+              help="Image size of both cameras (or --size-of).")
+@click.option("--size-of", "size_of", type=click.Path(exists=True, file_okay=False), default=None,
+              metavar="SEQUENCE", help="Take the image size from a sequence folder as `heartcv measure` reads it (its "
+                                       "cameras --names; their first frames must agree) instead of --image-size.")
+@click.option("--packed", type=click.Choice(("side-by-side", "top-bottom", "rows")), default=None,
+              help="With --size-of: SEQUENCE packs both views into every frame (as `heartcv measure --packed`); the "
+                   "size of one view.")
+@click.option("--focal-px", type=Float(0, 1e6, lo_open=True), default=None,
+              help="Focal length f in pixels (or --hfov-deg).")
+@click.option("--hfov-deg", type=Float(0, 180, lo_open=True, hi_open=True), default=None,
+              help="Horizontal field of view instead of --focal-px: f = (W / 2) / tan(hfov / 2).")
 @click.option("--principal-point", type=Point(), default=None, metavar="CX,CY",
               help="Principal point in pixels, OpenCV convention (default: the image centre ((W-1)/2, (H-1)/2)).")
 @click.option("--baseline-m", type=Float(0, 1e3, lo_open=True), required=True,
@@ -133,16 +143,28 @@ def import_(files, fmt, units, names, image_sizes, output, as_json):
                    "them: SEQUENCE/cam0, SEQUENCE/cam1).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Rig file to write (.yaml).")
 @json_opt
-def rectified(image_size, focal_px, principal_point, baseline_m, names, output, as_json):
+def rectified(image_size, size_of, packed, focal_px, hfov_deg, principal_point, baseline_m, names, output, as_json):
     """Write the rig of a pre-rectified stereo pair: both cameras K = [[f, 0, cx], [0, f, cy], [0, 0, 1]], no
     distortion; the left camera is the rig frame, the right one sits baseline metres to its right
     (cam_from_rig = [I | (-B, 0, 0)])."""
+    import math
+
     from heartcv.io import write_rig
     from heartcv.rig_formats import rectified_rig
 
-    w, h = image_size
     if len(names) != 2:
         raise BadInput(f"--names: two names expected (left,right), got {len(names)}")
+    if (image_size is None) == (size_of is None):
+        raise BadInput("--image-size or --size-of: one of them expected" if image_size is None else
+                       "--image-size and --size-of: one of them, not both")
+    if packed is not None and size_of is None:
+        raise BadInput("--packed: only with --size-of (the sequence whose frames pack the views)")
+    if (focal_px is None) == (hfov_deg is None):
+        raise BadInput("--focal-px or --hfov-deg: one of them expected" if focal_px is None else
+                       "--focal-px and --hfov-deg: one of them, not both")
+    w, h = image_size if image_size is not None else _sequence_size(size_of, names, packed)
+    if hfov_deg is not None:
+        focal_px = (w / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
     if baseline_m > MAX_BASELINE_M:
         raise BadInput(f"--baseline-m: baseline {baseline_m:.3g} m: looks like millimetres; give it in metres (e.g. "
                        f"--baseline-m {baseline_m / 1000:.3g} for {baseline_m:.3g} mm); a rectified rig spans at most "
@@ -160,6 +182,28 @@ def rectified(image_size, focal_px, principal_point, baseline_m, names, output, 
                                            "principal_point": list(result.cameras[0].K[:2, 2])})
     write_rig(out, result)
     _summarise(result, output, as_json)
+
+
+def _sequence_size(sequence, names, packed):
+    """``(W, H)`` of the views of a sequence folder as ``heartcv measure`` reads it (cameras ``names``, ``packed``):
+    the first instant where both cameras' images read; exit 2 naming the sequence where they differ or none
+    reads."""
+    from heartcv.io import FrameReader, open_frame_source
+    from heartcv.tracker.files import InputError
+
+    source = open_frame_source(sequence, cameras=names, packing=packed)
+    with FrameReader(source, frames=range(source.n_frames), workers=1) as reader:
+        for k in range(source.n_frames):
+            views, _ = reader.read(k)
+            if all(v is not None for v in views):
+                sizes = [(v.shape[1], v.shape[0]) for v in views]
+                if len(set(sizes)) > 1:
+                    raise InputError(sequence, f"instant {source.frame_names[k]}: the views are "
+                                     + " and ".join(f"{a}x{b}" for a, b in sizes) + " px: a rectified pair's views "
+                                     "have one size", "image size")
+                log.info("image size %dx%d px, from %s (instant %s)", *sizes[0], sequence, source.frame_names[k])
+                return sizes[0]
+    raise InputError(sequence, "no instant where both cameras' images read", "image size")
 
 
 def _summarise(result, output, as_json, warnings=()):

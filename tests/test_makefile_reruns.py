@@ -92,6 +92,10 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2")
     assert _stages(calls) == sorted(ALL), calls
     assert next(c for c in calls if c[0] == "measure")[1] == heart_b
+    # its geometry: the views' size read off it, the shared recording's field of view at that size
+    assert _arg(calls, "rig", "--size-of") == heart_b and _arg(calls, "rig", "--hfov-deg") == "49.55"
+    assert "--image-size" not in next(c for c in calls if c[0] == "rig")
+    assert "--focal-px" not in next(c for c in calls if c[0] == "rig")
     # a frame rate given: measure takes it; the fitted window stays 4 s (IV_FIT_S), or is given in frames
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FPS=50")
     assert _stages(calls) == sorted(ALL), calls
@@ -107,8 +111,12 @@ def test_demo_invivo_reruns_what_a_changed_setting_affects(make_stub):
     # the rig's geometry: the rig and everything after it
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400")
     assert _stages(calls) == sorted(ALL), calls
-    assert _arg(calls, "rig", "--focal-px") == "400"
+    assert _arg(calls, "rig", "--focal-px") == "400" and "--hfov-deg" not in next(c for c in calls if c[0] == "rig")
     assert run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400") == []
+    calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400", "IV_SIZE=640x480")
+    assert _stages(calls) == sorted(ALL), calls
+    assert _arg(calls, "rig", "--image-size") == "640x480"
+    assert "--size-of" not in next(c for c in calls if c[0] == "rig")
     # the cameras' folder names (a recording in left/ and right/): the rig and everything after it
     assert _arg(calls, "rig", "--names") == "cam0,cam1"
     calls = run(f"INVIVO={heart_b}", "HOLDOUT=0.2", "IV_FOCAL=400", "IV_NAMES=left,right")
@@ -134,6 +142,7 @@ def test_demo_invivo_on_the_shared_recording_takes_its_25_fps(make_stub):
                           f"WORK={make_stub[1] / 'work'}", f"INVIVO={shared}/"], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
     assert " --fps 25 " in res.stdout and "--duration 4" in res.stdout, res.stdout[-3000:]
+    assert f"--size-of {shared}/ " in res.stdout and "--focal-px 390 " in res.stdout, res.stdout[-3000:]
 
 
 def test_demo_reruns_what_a_changed_setting_affects(make_stub):

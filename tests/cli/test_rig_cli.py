@@ -223,6 +223,65 @@ def test_rectified_refusals(tmp_path, args, message):
     assert not (tmp_path / "r.yaml").exists()
 
 
+def _pair_folder(root, sizes, packed=None):
+    """cam0/ cam1/ folders of two noise images each of ``sizes`` [(W, H), (W, H)]; with ``packed`` one folder
+    ``frames/`` of side-by-side frames of the two views instead."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        views = [rng.integers(0, 255, (h, w, 3), dtype=np.uint8) for w, h in sizes]
+        if packed:
+            (root / "frames").mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(root / "frames" / f"{k:04d}.png"), np.hstack(views))
+            continue
+        for cam, v in zip(("cam0", "cam1"), views):
+            (root / cam).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(root / cam / f"{k:04d}.png"), v)
+    return root
+
+
+def test_rectified_size_of_a_sequence_and_field_of_view(tmp_path):
+    """--size-of SEQUENCE takes the views' size as measure reads them: the same file as --image-size, byte for byte;
+    --packed side-by-side: one view's size; --hfov-deg: f = (W / 2) / tan(hfov / 2) (90 degrees: f = W / 2)."""
+    seq = _pair_folder(tmp_path / "seq", [(320, 240), (320, 240)])
+    base = ["rig", "rectified", "--focal-px", "300", "--baseline-m", "0.005"]
+    assert _run(*base, "--image-size", "320x240", "-o", tmp_path / "a.yaml").exit_code == 0
+    res = _run(*base, "--size-of", seq, "-o", tmp_path / "b.yaml")
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "a.yaml").read_bytes() == (tmp_path / "b.yaml").read_bytes()
+    packed = _pair_folder(tmp_path / "packed", [(200, 150), (200, 150)], packed=True)
+    res = _run(*base, "--size-of", packed, "--packed", "side-by-side", "-o", tmp_path / "c.yaml")
+    assert res.exit_code == 0, res.output
+    assert (read_rig(tmp_path / "c.yaml")[0].width, read_rig(tmp_path / "c.yaml")[0].height) == (200, 150)
+    res = _run("rig", "rectified", "--image-size", "320x240", "--hfov-deg", "90", "--baseline-m", "0.005", "-o",
+               tmp_path / "d.yaml", "--json")
+    assert res.exit_code == 0, res.output
+    assert abs(json.loads(res.stdout)["cameras"][0]["fx"] - 160.0) < 1e-9
+    res = _run("rig", "rectified", "--image-size", "320x240", "--hfov-deg", "60", "--baseline-m", "0.005", "-o",
+               tmp_path / "e.yaml")
+    assert abs(read_rig(tmp_path / "e.yaml")[1].K[0, 0] - 160.0 / np.tan(np.radians(30.0))) < 1e-9
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--focal-px", "390"], "--image-size or --size-of: one of them expected"),
+    (["--image-size", "360x288"], "--focal-px or --hfov-deg: one of them expected"),
+    (["--image-size", "360x288", "--focal-px", "390", "--hfov-deg", "50"], "--focal-px and --hfov-deg: one of them"),
+    (["--image-size", "360x288", "--focal-px", "390", "--packed", "rows"], "--packed: only with --size-of"),
+    (["--image-size", "360x288", "--hfov-deg", "180"], "Invalid value for '--hfov-deg'"),
+    (["--size-of", "SEQ", "--image-size", "360x288", "--focal-px", "390"], "--image-size and --size-of: one of"),
+    (["--size-of", "ODD", "--focal-px", "390"], "ODD: image size: instant 0000: the views are 320x240 and 300x240"),
+])
+def test_rectified_size_and_focal_refusals(tmp_path, args, message):
+    _pair_folder(tmp_path / "SEQ", [(320, 240), (320, 240)])
+    _pair_folder(tmp_path / "ODD", [(320, 240), (300, 240)])
+    args = [str(tmp_path / a) if a in ("SEQ", "ODD") else a for a in args]
+    res = CliRunner().invoke(main, ["rig", "rectified", "--baseline-m", "0.005", "-o", str(tmp_path / "r.yaml"),
+                                    *args])
+    assert res.exit_code == 2 and message.replace("ODD", str(tmp_path / "ODD")) in res.output, res.output
+    assert not (tmp_path / "r.yaml").exists()
+
+
 def _sources(tmp_path) -> dict:
     """One valid file of every format (name -> bytes)."""
     import cv2
