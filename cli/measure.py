@@ -218,8 +218,11 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         if vertical_offset == "auto" and rig.meta.get("rectified") and len(rig) >= 2:
             rig = _rectified_offsets(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense,
                                      sizing, ref, matches)
-        _epipolar_check(matches, rig, ref, rig_file, sizing)
-        run = _run(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense, sizing)
+        _epipolar_distances(matches, rig, ref, sizing)
+        try:
+            run = _run(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense, sizing)
+        finally:   # after the run has chosen its working pixels; also when it found nothing
+            _epipolar_warning(rig, ref, rig_file, sizing)
     wall = time.perf_counter() - t_start
     res = run.result
     hp = highpass * (sizing or {}).get("size_factor", 1.0) * (sizing or {}).get("reduction", 1.0)
@@ -581,11 +584,12 @@ DESCRIPTOR_MATCHES = 500
 """:func:`_descriptor_matches` stops reading instants when every camera has this many SIFT matches."""
 
 EPIPOLAR_WARN_PX = 1.0
-""":func:`_epipolar_check` warns where the views' SIFT matches lie farther than this (median) from the rig's epipolar
-lines: how far off them the matching refines a match (``heartcv.matching.match_points``' ``refine_2d_px``)."""
+""":func:`_epipolar_warning` warns where the views' SIFT matches lie farther than this many working pixels (median)
+from the rig's epipolar lines: how far off them the matching refines a match (``heartcv.matching.match_points``'
+``refine_2d_px``)."""
 
 EPIPOLAR_MIN_MATCHES = 10
-"""Fewer SIFT matches than this say nothing in :func:`_epipolar_check` (a low-texture phantom's pair gives 18)."""
+"""Fewer SIFT matches than this say nothing in :func:`_epipolar_distances` (a low-texture phantom's pair gives 18)."""
 
 DESCRIPTOR_BIAS_PX = 0.1
 """How far SIFT's pooled vertical offset may lie from the truth (measured: 0.03-0.1 px on shifted noise textures,
@@ -612,7 +616,7 @@ class _Prefix:
 
 def _descriptor_matches(reader, count, ref, cameras, roi):
     """SIFT matches between the reference camera's views and each other camera's (:func:`heartcv.matching.
-    descriptor_matches`), for the rig-free checks (:func:`_rectified_offsets`, :func:`_epipolar_check`): camera ->
+    descriptor_matches`), for the rig-free checks (:func:`_rectified_offsets`, :func:`_epipolar_distances`): camera ->
     a list of ``(uv_ref, uv_c)`` per instant, over up to :data:`DESCRIPTOR_FRAMES` instants spread over the first
     :data:`PROBE_FRAMES`, until every camera has :data:`DESCRIPTOR_MATCHES` (a textured HD view has them at once, a
     low-resolution endoscope's take all five)."""
@@ -630,32 +634,42 @@ def _descriptor_matches(reader, count, ref, cameras, roi):
     return out
 
 
-def _epipolar_check(matches, rig, ref, rig_file, sizing):
+def _epipolar_distances(matches, rig, ref, sizing):
     """Whether the rig describes the cameras that took the views: per camera the median symmetric epipolar distance
     of the SIFT ``matches`` between its views and the reference camera's (:func:`_descriptor_matches`,
     :func:`heartcv.matching.descriptor_epipolar_distance`), in ``sizing["epipolar_px"]`` (camera -> px; None where
-    too few matches), at DEBUG; a warning naming the rig file where it exceeds :data:`EPIPOLAR_WARN_PX`: the matching
-    searches a point's match along the rig's epipolar curve and refines it at most that far off it, so such a rig
-    finds few points, and wrong ones."""
+    too few matches) and, with the matches' count, ``sizing["_epipolar"]`` for :func:`_epipolar_warning`."""
     from heartcv.matching import descriptor_epipolar_distance
 
     if not matches:
         return
-    sizing["epipolar_px"] = {}
+    sizing["epipolar_px"], sizing["_epipolar"] = {}, {}
     for c, m in matches.items():
         cam = rig.cameras[c]
         med, n = descriptor_epipolar_distance(rig.cameras[ref], cam, m, min_matches=EPIPOLAR_MIN_MATCHES)
         sizing["epipolar_px"][cam.name] = med if math.isfinite(med) else None
+        sizing["_epipolar"][cam.name] = (med, n, len(m))
         log.debug("epipolar check: %d SIFT matches between cameras %s and %s, median distance %.3g px from the rig's "
                   "epipolar lines", n, rig.cameras[ref].name, cam.name, med)
-        if math.isfinite(med) and med > EPIPOLAR_WARN_PX:
+
+
+def _epipolar_warning(rig, ref, rig_file, sizing):
+    """A warning naming the rig file for each camera whose :func:`_epipolar_distances` exceeds what the matching
+    reaches: :data:`EPIPOLAR_WARN_PX` working pixels (the matching searches a point's match along the rig's epipolar
+    curve and refines it at most that far off it, in the frames as measured: reduced by ``sizing["reduction"]``, a
+    field's rows twice as tall), so such a rig finds few points, and wrong ones. Soft HD video, measured on reduced
+    frames, has SIFT matches a pixel apart under a rig that describes it (the in-vivo heart upsampled 3x and blurred:
+    0.97 px, reduced 4x), which is why the threshold is in working pixels."""
+    scale = sizing.get("reduction", 1.0) * (2.0 if sizing.get("fields") in ("first", "second") else 1.0)
+    for name, (med, n, instants) in sizing.pop("_epipolar", {}).items():
+        if math.isfinite(med) and med > EPIPOLAR_WARN_PX * scale:
             log.warning("%s: the rig does not describe these cameras: SIFT features matched between camera %s's and "
                         "camera %s's views lie a median %.2f px from the rig's epipolar lines (%d matches on %d of the "
-                        "first instants; a rig that describes them gives a fraction of a pixel). The matching looks "
-                        "for a point's match along those lines and at most %.0f px off them, so it finds few points, "
-                        "and wrong ones. A calibration from before the focus or zoom changed, swapped camera names, "
-                        "another rig's file? Recalibrate (heartcv calibrate) or check the rig's cameras", rig_file,
-                        rig.cameras[ref].name, cam.name, med, n, len(m), EPIPOLAR_WARN_PX)
+                        "first instants; a rig that describes them gives a fraction of the pixels measured). The "
+                        "matching looks for a point's match along those lines and at most %.3g px off them, so it "
+                        "finds few points, and wrong ones. A calibration from before the focus or zoom changed, "
+                        "swapped camera names, another rig's file? Recalibrate (heartcv calibrate) or check the rig's "
+                        "cameras", rig_file, rig.cameras[ref].name, name, med, n, instants, EPIPOLAR_WARN_PX * scale)
 
 
 def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense, sizing, ref, matches):
@@ -669,12 +683,14 @@ def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, ri
     measured offset towards the rig's: by about a tenth for half a pixel (the in-vivo heart: 0.415 px measured with
     the rig as given, 0.455 with the rig moved by that), to under a pixel for three (0.67 px measured where 2.96 are
     true); several pixels off it finds wrong matches on the rig's rows and no offset at all. So the offset is first
-    measured without the rig, by SIFT descriptors matched between :data:`DESCRIPTOR_FRAMES` of the probe's instants
+    measured without the rig, from the SIFT ``matches`` of :func:`_descriptor_matches`
     (:func:`heartcv.matching.descriptor_v_offset`), and where that lies more than :data:`DESCRIPTOR_REACH_PX` from
     the rig's, the probes start from it; then the probe is repeated with the moved rig until no camera moves by more
     than three standard errors (at most :data:`PROBE_ROUNDS` probes, a warning if it still moves), and the last
-    measurement is used. Recorded in ``sizing["vertical_offsets_px"]``. A probe that fails leaves the rig as the
-    last one that worked (the run that follows says why)."""
+    measurement is used. ``--dense`` has no probe: it takes the descriptors' offset where that differs from the
+    rig's by more than :data:`DESCRIPTOR_BIAS_PX` plus three standard errors. Recorded in
+    ``sizing["vertical_offsets_px"]``. A probe that fails leaves the rig as the last one that worked (the run that
+    follows says why)."""
     from heartcv.camera import Rig
     from heartcv.matching import descriptor_v_offset
     from heartcv.measure_data import rectified_cameras, rectified_v_offsets

@@ -545,3 +545,25 @@ def test_a_rig_that_does_not_describe_the_cameras_is_named(pair, tmp_path):
     s = json.loads(res.stdout) if res.exit_code == 0 else None
     assert "stale.yaml: the rig does not describe these cameras" in res.stderr, res.stderr
     assert s is None or 5.0 < s["epipolar_px"]["cam1"] < 9.0, s
+
+
+@pytest.mark.parametrize("median, sizing, warned", [
+    (0.97, {}, False), (1.2, {}, True),
+    (2.0, {"reduction": 4.0}, False), (4.5, {"reduction": 4.0}, True),   # soft HD measured on reduced frames
+    (1.5, {"fields": "first"}, False), (1.5, {"fields": None}, True),     # a field's rows are twice as tall
+    (float("nan"), {}, False),                                            # too few matches: nothing said
+])
+def test_the_epipolar_warning_is_in_working_pixels(pair, caplog, median, sizing, warned):
+    """The rig is named when its views' SIFT matches lie farther from its epipolar lines than the matching reaches:
+    1 px of the frames as measured (reduced blurry frames: times the reduction; a field: twice the rows)."""
+    import logging
+
+    from heartcv.cli import measure as cli_measure
+    from heartcv.io import read_rig
+
+    rig = read_rig(pair / "rig.yaml")
+    caplog.set_level(logging.WARNING, logger="heartcv")
+    s = dict(sizing, _epipolar={"cam1": (median, 100, 5)})
+    cli_measure._epipolar_warning(rig, 0, "rig.yaml", s)
+    assert ("rig.yaml: the rig does not describe these cameras" in caplog.text) == warned, caplog.text
+    assert "_epipolar" not in s
