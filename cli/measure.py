@@ -593,8 +593,9 @@ EPIPOLAR_MIN_MATCHES = 10
 
 DESCRIPTOR_BIAS_PX = 0.1
 """How far SIFT's pooled vertical offset may lie from the truth (measured: 0.03-0.1 px on shifted noise textures,
-+0.06 px on the in-vivo heart against measure's own tracks): ``--dense``, which has no probe of its own, moves a
-camera only where the descriptors' offset differs from the rig's by more than this plus three standard errors."""
++0.06-0.11 px on the in-vivo heart against measure's own tracks, +0.18 px on a soft HD stand-in): ``--dense``, which
+has no probe of its own, moves a camera only where the descriptors' offset differs from the rig's by more than this
+plus three standard errors (a pair rectified exactly is not moved by SIFT's bias alone)."""
 
 DESCRIPTOR_REACH_PX = 1.0
 """The probes start from the descriptors' offset where it lies farther than this from the rig's: how far off the
