@@ -78,6 +78,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
                                rng=np.random.default_rng(seed) if resamples else None, resamples=resamples or 100)
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
     metrics["tracks"] = _track_motion(meas_file, runs)
+    metrics["rig_check"] = _rig_check(meas_file)
     metrics.update(_provenance(runs, truth_file, meas_file))
     with atomic_folder(output, producer=PRODUCER) as tmp:
         doc = _write_folder(tmp, metrics, runs, compared["per_run"], truth, noise, dpi, phases, images)
@@ -273,6 +274,18 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
         if isinstance(v, (int, float)) and np.isfinite(v) and v > 0:
             return float(v), f"estimate meta ({r['path']})"
     return None, None
+
+
+def _rig_check(meas_file) -> dict | None:
+    """What ``heartcv measure`` found of the rig against its views (the measurement file's ``rig_epipolar_px`` and
+    ``rig_vertical_offsets_px``), for the report; None without --measurements or a file that records neither."""
+    if meas_file is None:
+        return None
+    meta = _measurements(meas_file).meta
+    epi, off = meta.get("rig_epipolar_px"), meta.get("rig_vertical_offsets_px")
+    if not epi and not off:
+        return None
+    return {"epipolar_px": dict(epi) if epi else None, "vertical_offsets_px": dict(off) if off else None}
 
 
 def _track_motion(meas_file, runs=None) -> dict | None:

@@ -63,6 +63,7 @@ def _facts(doc) -> list:
     facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']}); "
                  f"its mean 3-D norm σ·√(8/π): {mm(doc['measurement_noise_norm_mean_m'])}."
                  if noise is not None else "Measurement noise: unknown (give --measurements).")
+    facts += _rig_facts(doc.get("rig_check"))
     facts += _track_facts(doc.get("tracks"), doc["measurement_noise_norm_mean_m"])
     for key, what in (("ratio_ge_to_kf_prediction_error", "prediction error"),
                       ("ratio_ge_to_kf_truth_error", "truth error (filtered)")):
@@ -143,6 +144,22 @@ def _ablation_ratio(doc, label, base) -> str:
     if after_a is not None and after_b:
         out += f"; after the fitted frames {after_a / after_b:.3f}"
     return out + ")"
+
+
+def _rig_facts(rc) -> list:
+    """The rig against its views, as ``heartcv measure`` found it (``doc["rig_check"]``)."""
+    if not rc:
+        return []
+    parts = []
+    if rc.get("epipolar_px"):
+        parts.append("SIFT features matched between the views lie a median "
+                     + ", ".join(f"{'–' if v is None else f'{v:.2f}'} px ({k})" for k, v in rc["epipolar_px"].items())
+                     + " from the rig's epipolar lines (a rig that describes the cameras: a fraction of a pixel of "
+                       "the frames as measured)")
+    if rc.get("vertical_offsets_px"):
+        parts.append("a rectified pair's vertical offset measured and taken into the rig: "
+                     + ", ".join(f"{k} {v:+.3f} px" for k, v in rc["vertical_offsets_px"].items()))
+    return ["Rig checked against its views (heartcv measure): " + "; ".join(parts) + "."]
 
 
 def _track_facts(tr, noise_norm) -> list:

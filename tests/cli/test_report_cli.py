@@ -333,3 +333,28 @@ def test_summary_says_which_window_rates_may_be_drift():
     line = " ".join(_rate_windows({"tracks": {"heart_rate_windows": {"window_s": 6.0, "step_s": 3.0,
                                                                       "windows": windows}}}))
     assert "may be drift" not in line, line
+
+
+def test_the_rig_check_of_measure_is_reported(run, tmp_path):
+    """A measurement file recording what `heartcv measure` found of its rig (`rig_epipolar_px`,
+    `rig_vertical_offsets_px`): metrics.json `rig_check` holds both, summary.md says them; the simulated file,
+    which records neither, gives null and no such line."""
+    from dataclasses import replace
+
+    from heartcv.tracker.io import read_measurements, write_measurements
+
+    m = read_measurements(run / "m.npz")
+    write_measurements(tmp_path / "m.npz", replace(m, meta=dict(m.meta, rig_epipolar_px={"cam1": 0.29, "cam2": None},
+                                                                  rig_vertical_offsets_px={"cam1": 0.46})))
+    _ok(main, ["-q", "track", tmp_path / "m.npz", "--model", PAPER, "-o", tmp_path / "kf.npz"])
+    res = _report([tmp_path / "kf.npz", "--measurements", tmp_path / "m.npz", "-o", tmp_path / "rep", "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert doc["rig_check"] == {"epipolar_px": {"cam1": 0.29, "cam2": None}, "vertical_offsets_px": {"cam1": 0.46}}
+    md = (tmp_path / "rep" / "summary.md").read_text()
+    assert ("Rig checked against its views (heartcv measure): SIFT features matched between the views lie a median "
+            "0.29 px (cam1), – px (cam2)") in md and "cam1 +0.460 px" in md, md
+    res = _report([run / "kf.npz", "--measurements", run / "m.npz", "-o", tmp_path / "rep0", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["rig_check"] is None
+    assert "Rig checked" not in (tmp_path / "rep0" / "summary.md").read_text()
