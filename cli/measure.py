@@ -218,7 +218,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         if vertical_offset == "auto" and rig.meta.get("rectified") and len(rig) >= 2:
             rig = _rectified_offsets(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense,
                                      sizing, ref, matches)
-        _epipolar_distances(matches, rig, ref, sizing)
+        _epipolar_distances(matches, rig, ref, rig_file, sizing)
         try:
             run = _run(ctx, reader, rig, opts, roi, be, len(instant_names), sequence, rig_file, dense, sizing)
         finally:   # after the run has chosen its working pixels; also when it found nothing
@@ -635,12 +635,14 @@ def _descriptor_matches(reader, count, ref, cameras, roi):
     return out
 
 
-def _epipolar_distances(matches, rig, ref, sizing):
+def _epipolar_distances(matches, rig, ref, rig_file, sizing):
     """Whether the rig describes the cameras that took the views: per camera the median symmetric epipolar distance
     of the SIFT ``matches`` between its views and the reference camera's (:func:`_descriptor_matches`,
     :func:`heartcv.matching.descriptor_epipolar_distance`), in ``sizing["epipolar_px"]`` (camera -> px; None where
-    too few matches) and, with the matches' count, ``sizing["_epipolar"]`` for :func:`_epipolar_warning`."""
-    from heartcv.matching import descriptor_epipolar_distance
+    too few matches) and, with the matches' count, ``sizing["_epipolar"]`` for :func:`_epipolar_warning`. And
+    whether the rig puts the matches in front of the cameras (:func:`heartcv.matching.descriptor_front_fraction`):
+    a warning naming the rig file where fewer than half are (cameras swapped, a baseline the wrong way)."""
+    from heartcv.matching import descriptor_epipolar_distance, descriptor_front_fraction
 
     if not matches:
         return
@@ -650,8 +652,17 @@ def _epipolar_distances(matches, rig, ref, sizing):
         med, n = descriptor_epipolar_distance(rig.cameras[ref], cam, m, min_matches=EPIPOLAR_MIN_MATCHES)
         sizing["epipolar_px"][cam.name] = med if math.isfinite(med) else None
         sizing["_epipolar"][cam.name] = (med, n, len(m))
+        front, n_front = descriptor_front_fraction(rig.cameras[ref], cam, m, min_matches=EPIPOLAR_MIN_MATCHES)
         log.debug("epipolar check: %d SIFT matches between cameras %s and %s, median distance %.3g px from the rig's "
-                  "epipolar lines", n, rig.cameras[ref].name, cam.name, med)
+                  "epipolar lines, %.0f %% of %d in front of both", n, rig.cameras[ref].name, cam.name, med,
+                  100 * front, n_front)
+        if math.isfinite(front) and front < 0.5:
+            log.warning("%s: the rig puts what cameras %s and %s see behind them: %.0f %% of the %d SIFT features "
+                        "matched between their views triangulate in front of both (a rig that describes them: "
+                        "nearly all). Are the two cameras swapped (the left one's images under the right one's "
+                        "name: rig rectified --names LEFT,RIGHT, the sequence's folder names), or does the rig's "
+                        "baseline point the wrong way?", rig_file, rig.cameras[ref].name, cam.name, 100 * front,
+                        n_front)
 
 
 def _epipolar_warning(rig, ref, rig_file, sizing):

@@ -30,7 +30,7 @@ from .backend import OpenCVBackend
 
 __all__ = ["MatchResult", "match_points", "ray_depth_range", "patch_offsets", "normal_hypotheses",
            "local_planes", "bisector_normals", "descriptor_matches", "descriptor_v_offset",
-           "descriptor_epipolar_distance"]
+           "descriptor_epipolar_distance", "descriptor_front_fraction"]
 
 
 @dataclass(frozen=True)
@@ -651,6 +651,34 @@ def descriptor_epipolar_distance(cam_a, cam_b, matches, *, min_matches=20):
     d = np.concatenate(d) if d else np.zeros(0)
     d = d[np.isfinite(d)]
     return (float(np.median(d)) if d.size >= min_matches else float("nan")), int(d.size)
+
+
+def descriptor_front_fraction(cam_a, cam_b, matches, *, min_matches=20):
+    """Whether the rig puts what two cameras see in front of them: ``(fraction, matches)``, the share of ``matches``
+    (a sequence of ``(uv_a (N, 2), uv_b (N, 2))``, e.g. :func:`descriptor_matches`) whose rays through the two
+    cameras come closest in front of both (positive distance along both rays: the midpoint method), among those whose
+    rays are not parallel; NaN with fewer than ``min_matches`` such. A rig that describes the cameras puts nearly
+    all of them in front (the wrong matches scatter either way); with its two cameras swapped (left for right), or
+    its baseline pointing the wrong way, the rays diverge and nearly all of them lie behind."""
+    s_all, t_all = [], []
+    for ua, ub in matches:
+        if not len(ua):
+            continue
+        oa, da = cam_a.rays(np.asarray(ua, float))
+        ob, db = cam_b.rays(np.asarray(ub, float))
+        w0 = oa - ob
+        b = np.einsum("ij,ij->i", da, db)
+        d, e = np.einsum("ij,ij->i", da, w0), np.einsum("ij,ij->i", db, w0)
+        denom = 1.0 - b * b                                  # unit directions: a = c = 1
+        ok = denom > 1e-12
+        s_all.append(np.where(ok, (b * e - d) / np.where(ok, denom, 1.0), np.nan))
+        t_all.append(np.where(ok, (e - b * d) / np.where(ok, denom, 1.0), np.nan))
+    s_ = np.concatenate(s_all) if s_all else np.zeros(0)
+    t_ = np.concatenate(t_all) if t_all else np.zeros(0)
+    ok = np.isfinite(s_) & np.isfinite(t_)
+    if ok.sum() < min_matches:
+        return float("nan"), int(ok.sum())
+    return float(np.mean((s_[ok] > 0) & (t_[ok] > 0))), int(ok.sum())
 
 
 def descriptor_v_offset(matches, *, min_matches=20):

@@ -567,3 +567,16 @@ def test_the_epipolar_warning_is_in_working_pixels(pair, caplog, median, sizing,
     cli_measure._epipolar_warning(rig, 0, "rig.yaml", s)
     assert ("rig.yaml: the rig does not describe these cameras" in caplog.text) == warned, caplog.text
     assert "_epipolar" not in s
+
+
+def test_a_rig_with_its_cameras_swapped_is_named(pair, tmp_path):
+    """The synthetic pair under `rig rectified --names cam1,cam0` (the left camera's images under the right one's
+    name): the SIFT matches triangulate behind the cameras, and a warning names the rig file and says so; the rig
+    as written puts them in front (no such warning)."""
+    swapped = _run("rig", "rectified", "--image-size", f"{W}x{H}", "--focal-px", "390", "--baseline-m", "0.0055",
+                   "--names", "cam1,cam0", "-o", tmp_path / "swapped.yaml")
+    assert swapped.exit_code == 0, swapped.output
+    res, _ = _measure(pair, tmp_path / "s", rig=tmp_path / "swapped.yaml")
+    assert "swapped.yaml: the rig puts what cameras cam1 and cam0 see behind them" in res.stderr, res.stderr
+    res, _ = _measure(pair, tmp_path / "a")
+    assert res.exit_code == 0 and "behind them" not in res.stderr, res.stderr

@@ -11,6 +11,7 @@ from heartcv.features import detect_corners
 from heartcv.matching import (
     bisector_normals,
     descriptor_epipolar_distance,
+    descriptor_front_fraction,
     descriptor_matches,
     descriptor_v_offset,
     local_planes,
@@ -376,7 +377,8 @@ def test_descriptor_epipolar_distance_against_the_rig():
     """Two calibrated cameras 6 mm apart (distortion included) seeing a textured plane: matches of their rendered
     views lie a median < 0.3 px from the rig's epipolar lines; with the second camera tilted 1 degree about the
     baseline in the rig (a stale calibration) they lie ~ f tan(1 deg) = 7 px off (5-10); with the cameras swapped
-    over 1 px (2 px: a nearly horizontal baseline keeps most of the rows); no matches: NaN."""
+    over 1 px (2 px: a nearly horizontal baseline keeps most of the rows); no matches: NaN. The matches' rays meet
+    in front of both cameras (> 90 %); with the views swapped behind them (< 10 % in front)."""
     import cv2
 
     from heartcv.camera import Camera, pose_matrix
@@ -411,3 +413,9 @@ def test_descriptor_epipolar_distance_against_the_rig():
     med_s, _ = descriptor_epipolar_distance(cams[1], cams[0], m)
     assert med_s > 1.0, med_s
     assert np.isnan(descriptor_epipolar_distance(cams[0], cams[1], [(np.zeros((0, 2)), np.zeros((0, 2)))])[0])
+    # the rays of the matches meet in front of both cameras; with the views swapped (left for right) behind them
+    front, n_front = descriptor_front_fraction(cams[0], cams[1], m)
+    assert n_front >= 100 and front > 0.9, (front, n_front)
+    back, _ = descriptor_front_fraction(cams[0], cams[1], [(ub, ua) for ua, ub in m])
+    assert back < 0.1, back
+    assert np.isnan(descriptor_front_fraction(cams[0], cams[1], [(np.zeros((0, 2)), np.zeros((0, 2)))])[0])
