@@ -51,9 +51,13 @@ MAX_STARTS = 1000
                    "rate from their spectrum, the input's harmonics and a rigid motion fitted); 'auto': estimate "
                    "when the file has no pressure column.")
 @click.option("--heart-rate-hz", type=Float(0, 1e6, lo_open=True), default=None, metavar="HZ",
-              help="An estimated input's heart rate, known otherwise (an ECG, the monitor), in Hz (0.5-4, i.e. "
-                   "30-240 bpm): used as given instead of the tracks' spectrum, and without its tests of a "
-                   "heartbeat (default: from the tracks' spectrum).")
+              help="An estimated input's heart rate, known otherwise (an ECG, the monitor), in Hz (within "
+                   "--heart-rate-band, 0.5-4 by default): used as given instead of the tracks' spectrum, and "
+                   "without its tests of a heartbeat (default: from the tracks' spectrum).")
+@click.option("--heart-rate-band", default=None, metavar="LO,HI",
+              help="The heart rates an estimated input may take, in Hz (default 0.5,4: 30-240 bpm, a human or pig "
+                   "heart; a rat's or mouse's beats 4-10 Hz): where the tracks' spectrum is searched, where "
+                   "--heart-rate-hz may lie, and the box of the GE's sampled rate.")
 @click.option("--harmonics", type=Int(1, 10), default=None,
               help="Harmonics of the heart rate in an estimated input (default 6).")
 @click.option("--respiration", type=click.Choice(("auto", "none")), default="auto", show_default=True,
@@ -84,7 +88,7 @@ MAX_STARTS = 1000
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
 def fit(measurements, model_file, output, frames, duration, starts, seed, max_evaluations, input_mode, heart_rate_hz,
-        harmonics, respiration, rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
+        heart_rate_band, harmonics, respiration, rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -120,9 +124,12 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
     estimate_input = _input_mode(input_mode, meas, m, measurements)
     if heart_rate_hz is not None and not estimate_input:
         raise BadInput("--heart-rate-hz applies to an estimated input (--input estimate) only")
-    if heart_rate_hz is not None and not BAND_HZ[0] <= heart_rate_hz <= BAND_HZ[1]:
-        raise BadInput(f"--heart-rate-hz {heart_rate_hz:g}: {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz expected "
-                       f"({60 * BAND_HZ[0]:g}-{60 * BAND_HZ[1]:g} bpm)")
+    band = BAND_HZ if heart_rate_band is None else _band(heart_rate_band)
+    if heart_rate_band is not None and not estimate_input:
+        raise BadInput("--heart-rate-band applies to an estimated input (--input estimate) only")
+    if heart_rate_hz is not None and not band[0] <= heart_rate_hz <= band[1]:
+        raise BadInput(f"--heart-rate-hz {heart_rate_hz:g}: {band[0]:g}-{band[1]:g} Hz expected "
+                       f"({60 * band[0]:g}-{60 * band[1]:g} bpm; --heart-rate-band for another)")
     if harmonics is not None and not estimate_input:
         raise BadInput("--harmonics applies to an estimated input (--input estimate) only")
     if rigid_ar != "auto" and not estimate_input:
@@ -148,7 +155,7 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
                                                               0 if rigid_ar == "none" else int(rigid_ar),
                                                               None if field_degree is None
                                                               else int(field_degree), rigid_harmonics,
-                                                              heart_rate_hz)
+                                                              heart_rate_hz, band)
             else:
                 result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
                                  max_evaluations=max_evaluations)
@@ -251,8 +258,20 @@ def _observed_patch(rig_meas, m, output):
     return model, to_patch_frame(rig_meas, op.registration), reg
 
 
+def _band(text):
+    """``--heart-rate-band LO,HI`` -> (lo, hi) Hz, 0.1 <= lo < hi <= 20; exit 2 otherwise."""
+    try:
+        lo, hi = (float(v) for v in str(text).split(","))
+    except ValueError:
+        raise BadInput(f"--heart-rate-band: LO,HI in Hz expected (e.g. 0.5,4), got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.1 <= lo < hi <= 20.0):
+        raise BadInput(f"--heart-rate-band {text}: 0.1 <= LO < HI <= 20 Hz expected")
+    return lo, hi
+
+
 def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True,
-                       rigid_ar_order=None, field_degree=None, rigid_harmonics=None, heart_rate_hz=None):
+                       rigid_ar_order=None, field_degree=None, rigid_harmonics=None, heart_rate_hz=None,
+                       band=None):
     """The fit with an estimated input (heart rate from the tracks, or ``heart_rate_hz`` as given; harmonics and
     rigid motion profiled; the respiration rate from the rigid motion when ``respiration`` and one is seen):
     ``(FitResult, estimated_input entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
@@ -264,6 +283,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     from heartcv.tracker.fit import fit as run_fit
     from heartcv.tracker.model import build_model
     from heartcv.tracker.unknown_input import (
+        BAND_HZ,
         FIELD_DEGREE,
         HARMONICS,
         PEAK_PROMINENCE,
@@ -277,14 +297,15 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
         input_block_from_fit,
     )
 
+    band = BAND_HZ if band is None else tuple(band)
     H = HARMONICS if harmonics is None else harmonics
     field_degree = FIELD_DEGREE if field_degree is None else int(field_degree)
     K = meas.n_frames if frames is None else min(frames, meas.n_frames)
     try:
         if heart_rate_hz is None:
-            hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H, prominent=True)
+            hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H, band, prominent=True)
         else:
-            hr = heart_rate_at(meas.times[:K], meas.positions[:K], heart_rate_hz)
+            hr = heart_rate_at(meas.times[:K], meas.positions[:K], heart_rate_hz, band)
     except NotProminent as exc:
         raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written (if the recording does "
                           "show a heartbeat, give its rate with --heart-rate-hz)") from None
@@ -354,7 +375,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                              "peak_prominence": hr.prominence if math.isfinite(hr.prominence) else None,
                              "peak_background_ratio": hr.background_ratio if math.isfinite(hr.background_ratio)
                              else None,
-                             "beats": hr.beats, "points": hr.points},
+                             "beats": hr.beats, "points": hr.points, "band_hz": [float(band[0]), float(band[1])]},
                  respiration=resp.to_dict(),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
                  held_fixed=["E"] if fit_model is not m else [], fit_frames=K, rigid_ar_order=block.ar_order,

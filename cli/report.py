@@ -340,7 +340,9 @@ def _track_motion(meas_file, runs=None) -> dict | None:
     out["heart_rate_windows"] = out["heart_rate_agreement"] = None
     rates = run_rates(runs or {}, "heart_rate")
     if rates:   # the runs used a heart rate: what the tracks' own spectrum says of it, window by window
-        windows = windowed_heart_rate(m.times, m.positions)
+        band = next((r["est"].meta["heart_rate_band_hz"] for r in (runs or {}).values()
+                     if r["est"].meta.get("heart_rate_band_hz")), None)
+        windows = windowed_heart_rate(m.times, m.positions, band=band)
         out["heart_rate_windows"] = {"window_s": RATE_WINDOW_S, "step_s": RATE_STEP_S, "windows": windows}
         out["heart_rate_agreement"] = {k: a for k, (t, f, sd) in rates.items()
                                        if (a := rate_agreement(windows, t, f, sd)) is not None} or None

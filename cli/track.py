@@ -182,6 +182,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     if fitted is not None:
         m = _fitted_patch(m, fitted, params_file)
         input_block = _input_block(m, meas, fitted, params_file, measurements)
+        if input_block is not None:
+            _check_rate_band(input_block, fitted, params_file)
         if heart_rate_walk is not None and input_block is None:
             raise BadInput(f"--heart-rate-walk: {params_file} holds no estimated input (estimated_input; the fit had "
                            "a recorded pressure), so the GE samples no heart rate")
@@ -328,19 +330,44 @@ def _rate_prior(estimator, input_block, fitted, heart_rate_walk=None):
     """The GE with an estimated input samples the heart rate, and the respiration rate when the fit saw one: their
     priors from the fit (docs/model.md §17); ``heart_rate_walk`` (per square-root second) replaces the heart rate's
     default random walk."""
-    from heartcv.tracker.unknown_input import RATE_WALK_PER_SQRT_S, RatePrior, respiration_prior
+    from heartcv.tracker.unknown_input import BAND_HZ, RATE_WALK_PER_SQRT_S, RatePrior, respiration_prior
 
     if estimator != "ge" or input_block is None:
         return None
     rate = _fitted_heart_rate(fitted)
     walk = RATE_WALK_PER_SQRT_S if heart_rate_walk is None else float(heart_rate_walk)
-    rates = [RatePrior(input_block.frequency_hz, rate.get("heart_rate_std_hz") or 0.0, walk_per_sqrt_s=walk)]
+    band = rate.get("heart_rate_band_hz") or BAND_HZ
+    rates = [RatePrior(input_block.frequency_hz, rate.get("heart_rate_std_hz") or 0.0, band=tuple(band),
+                       walk_per_sqrt_s=walk)]
     if input_block.respiration_harmonics:
         resp = fitted.estimated_input.get("respiration") if fitted is not None else None
         std = resp.get("std_hz") if isinstance(resp, dict) else None
         rates.append(respiration_prior(input_block.respiration_hz,
                                        float(std) if isinstance(std, (int, float)) and math.isfinite(std) else 0.0))
     return rates
+
+
+def _check_rate_band(input_block, fitted, params_file):
+    """Exit 2 naming the parameters file where its heart-rate band (``estimated_input.heart_rate.band_hz``, heartcv
+    fit --heart-rate-band; default 0.5-4 Hz) is not ``[lo, hi]`` with 0 < lo < hi, or does not hold its heart rate
+    (the GE samples the rate inside that band)."""
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.unknown_input import BAND_HZ
+
+    hr = fitted.estimated_input.get("heart_rate") if isinstance(fitted.estimated_input, dict) else None
+    band = hr.get("band_hz") if isinstance(hr, dict) else None
+    field = "estimated_input.heart_rate.band_hz"
+    if band is None:
+        band = BAND_HZ
+    elif not (isinstance(band, (list, tuple)) and len(band) == 2
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in band)
+              and 0 < band[0] < band[1]):
+        raise InputError(params_file, f"[lo, hi] in Hz with 0 < lo < hi expected, got {band!r}", field)
+    f = input_block.frequency_hz
+    if not band[0] <= f <= band[1]:
+        raise InputError(params_file, f"the heart rate {f:.4g} Hz lies outside its band {band[0]:g}-{band[1]:g} Hz "
+                         "(heartcv fit --heart-rate-band)", field if hr and "band_hz" in hr else
+                         "estimated_input.frequency_hz")
 
 
 def _fitted_heart_rate(fitted) -> dict:
@@ -352,9 +379,13 @@ def _fitted_heart_rate(fitted) -> dict:
     hr = entry.get("heart_rate") if isinstance(entry.get("heart_rate"), dict) else {}
     std = hr.get("std_hz")
     how = "given: --heart-rate-hz" if hr.get("source") == "given" else "the tracks' spectrum"
+    band = hr.get("band_hz")
     out = {"heart_rate_hz": float(entry["frequency_hz"]),
            "heart_rate_std_hz": float(std) if isinstance(std, (int, float)) else None,
            "heart_rate_source": f"parameters file (heartcv fit, {how})"}
+    if isinstance(band, (list, tuple)) and len(band) == 2 and all(isinstance(v, (int, float)) for v in band) \
+            and 0 < band[0] < band[1]:
+        out["heart_rate_band_hz"] = [float(band[0]), float(band[1])]
     resp = entry.get("respiration") if isinstance(entry.get("respiration"), dict) else {}
     if isinstance(resp.get("frequency_hz"), (int, float)):
         rstd = resp.get("std_hz")

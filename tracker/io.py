@@ -9,6 +9,7 @@ the field; writes are atomic.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -216,6 +217,13 @@ def _check_report_meta(meta, path, K):
     for key in ("heart_rate_hz", "heart_rate_std_hz", "respiration_rate_hz", "respiration_rate_std_hz"):
         if meta.get(key) is not None:
             meta[key] = get_field(meta, key, "float", path, lo=0, prefix="meta.")
+    band = meta.get("heart_rate_band_hz")
+    if band is not None:
+        if not (isinstance(band, (list, tuple)) and len(band) == 2
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in band)
+                and 0 < band[0] < band[1]):
+            raise InputError(path, f"[lo, hi] with 0 < lo < hi expected, got {band!r}", "meta.heart_rate_band_hz")
+        meta["heart_rate_band_hz"] = [float(band[0]), float(band[1])]
     for key in ("heart_rate_source", "respiration_rate_source"):
         if meta.get(key) is not None:
             get_field(meta, key, "str", path, prefix="meta.")

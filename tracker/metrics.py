@@ -968,7 +968,8 @@ RATE_STEP_S = 3.0
 """Step between those windows (s): half a window, so each frame lies in two."""
 
 
-def windowed_heart_rate(times, positions, window_s: float = RATE_WINDOW_S, step_s: float = RATE_STEP_S) -> list:
+def windowed_heart_rate(times, positions, window_s: float = RATE_WINDOW_S, step_s: float = RATE_STEP_S,
+                        band=None) -> list:
     """The tracks' own heart rate over sliding windows, with no model: :func:`tracker.unknown_input.
     estimate_heart_rate` (the estimator of ``heartcv fit``: spectral peak, refined by a harmonic fit, with its
     standard error) on the frames of each window ``[t0, t0 + window_s)``, t0 = first time, + ``step_s``, ... while
@@ -978,8 +979,11 @@ def windowed_heart_rate(times, positions, window_s: float = RATE_WINDOW_S, step_
     rate, its standard error and its spectral peak's prominence (:func:`tracker.unknown_input.peak_prominence`;
     below :data:`tracker.unknown_input.PEAK_PROMINENCE` the rate may be drift's) (``reason`` None), or None for
     them and ``reason`` why the window shows no clear heartbeat. Empty when the recording is shorter than one
-    window."""
-    from .unknown_input import NoHeartbeat, estimate_heart_rate
+    window. ``band``: the heart rates searched (Hz; default :data:`tracker.unknown_input.BAND_HZ`, as ``heartcv fit
+    --heart-rate-band``)."""
+    from .unknown_input import BAND_HZ, HARMONICS, NoHeartbeat, estimate_heart_rate
+
+    band = BAND_HZ if band is None else tuple(band)
 
     t = np.asarray(times, float)
     y = np.asarray(positions, float)
@@ -997,7 +1001,7 @@ def windowed_heart_rate(times, positions, window_s: float = RATE_WINDOW_S, step_
         entry = {"t_start_s": start, "t_end_s": start + window_s, "frequency_hz": None, "std_hz": None,
                  "peak_prominence": None, "reason": None}
         try:
-            hr = estimate_heart_rate(t[sel], y[sel])
+            hr = estimate_heart_rate(t[sel], y[sel], HARMONICS, band)
             entry["frequency_hz"], entry["std_hz"] = float(hr.frequency_hz), float(hr.std_hz)
             entry["peak_prominence"] = float(hr.prominence) if math.isfinite(hr.prominence) else None
         except NoHeartbeat as exc:

@@ -810,3 +810,46 @@ def test_the_ge_follows_a_heart_that_speeds_up(tmp_path):
     print(f"\nramp: GE {ratio['ge']:.3f}x hold, KF {ratio['kf']:.3f}x hold over the second half; GE rate "
           f"{rate[-1]:.1f} bpm at the end")
     assert ratio["ge"] < 0.85 * ratio["kf"], ratio
+
+
+def test_a_heart_faster_than_240_bpm_needs_its_band(tmp_path, blind_file):
+    """The blind paper patch (60 bpm, 30 fps, 6 s) with its clock running 5 times faster: a 300-bpm heart (a rat's)
+    filmed at 150 fps. fit searches 0.5-4 Hz by default and exits 1 (no periodic motion there); with
+    --heart-rate-band 3,10 it finds 5 Hz within 1 % and records the band; track's GE samples the rate inside that
+    band (before, a parameters file with 5 Hz stopped track with an internal error) and ends within 2 % of 5 Hz;
+    --heart-rate-hz outside the band, a malformed band, and a parameters file whose band does not hold its rate
+    exit 2."""
+    import yaml
+
+    m = read_measurements(blind_file)
+    fast = str(tmp_path / "fast.npz")
+    write_measurements(fast, dataclasses.replace(m, times=m.times / 5.0))
+    params = str(tmp_path / "p.yaml")
+    res = CliRunner().invoke(main, ["fit", fast, "--model", PAPER, "-o", params, "--json"])
+    assert res.exit_code == 1 and "no periodic motion" in res.output, res.output
+    res = CliRunner().invoke(main, ["fit", fast, "--model", PAPER, "-o", params, "--heart-rate-band", "3,10",
+                                    "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["heart_rate_hz"] == pytest.approx(5.0, rel=0.01)
+    hr = read_parameters(params).estimated_input["heart_rate"]
+    assert hr["band_hz"] == [3.0, 10.0]
+    ge = str(tmp_path / "ge.npz")
+    res = CliRunner().invoke(main, ["track", fast, "--model", PAPER, "--params", params, "--estimator", "ge",
+                                    "--seed", "1", "-o", ge])
+    assert res.exit_code == 0, res.output
+    e = read_estimates(ge)
+    assert e.meta["heart_rate_band_hz"] == [3.0, 10.0]
+    assert e.heart_rate[-1, 0] == pytest.approx(5.0, rel=0.02)
+    for args, message in ((["--heart-rate-hz", "5"], "--heart-rate-hz 5: 0.5-4 Hz expected"),
+                          (["--heart-rate-band", "3"], "--heart-rate-band: LO,HI in Hz expected"),
+                          (["--heart-rate-band", "10,3"], "--heart-rate-band 10,3: 0.1 <= LO < HI <= 20 Hz")):
+        res = CliRunner().invoke(main, ["fit", fast, "--model", PAPER, "-o", str(tmp_path / "x.yaml"), *args])
+        assert res.exit_code == 2 and message in res.output, res.output
+    d = yaml.safe_load(open(params))
+    d["estimated_input"]["heart_rate"]["band_hz"] = [0.5, 4.0]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(d))
+    res = CliRunner().invoke(main, ["track", fast, "--model", PAPER, "--params", str(bad), "--estimator", "ge",
+                                    "-o", str(tmp_path / "ge2.npz")])
+    assert res.exit_code == 2 and "estimated_input.heart_rate.band_hz" in res.output, res.output
+    assert "outside its band 0.5-4 Hz" in res.output, res.output
