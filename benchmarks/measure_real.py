@@ -191,6 +191,44 @@ def _dense_run(folder: Path, rig, n: int) -> dict:
     return _summarise(run, n, wall, {"open_s": t1 - t0})
 
 
+def _rig_check(folder: Path, rig, n: int, repeats: int, warmup: int) -> dict:
+    """The SIFT checks ``heartcv measure`` runs before measuring (cli/measure.py ``_descriptor_matches``, then the
+    rectified pair's descriptor offset, the epipolar distance and the share of matches in front of the cameras):
+    median seconds of ``repeats``, against decoding the same instants alone."""
+    from heartcv.io import FrameReader, open_frame_source
+    from heartcv.matching import (
+        descriptor_epipolar_distance,
+        descriptor_front_fraction,
+        descriptor_matches,
+        descriptor_v_offset,
+    )
+
+    ks = [int(k) for k in np.unique(np.linspace(0, min(n, 30) - 1, 5).round())]
+    source = open_frame_source(folder, cameras=rig.names)
+    with FrameReader(source, mode="color", sizes=[c.size for c in rig.cameras], frames=range(n), workers=1) as rd:
+        result = {}
+
+        def check():
+            matches = []
+            for k in ks:
+                views = rd.read(k)[0]
+                matches.append(descriptor_matches(views[0], views[1]))
+                if sum(len(m[0]) for m in matches) >= 500:
+                    break
+            result.update(instants=len(matches), matches=int(sum(len(m[0]) for m in matches)),
+                          offset_px=descriptor_v_offset(matches)[0],
+                          epipolar_px=descriptor_epipolar_distance(rig.cameras[0], rig.cameras[1], matches)[0],
+                          front_fraction=descriptor_front_fraction(rig.cameras[0], rig.cameras[1], matches)[0])
+
+        def decode():
+            for k in ks[:max(result.get("instants", len(ks)), 1)]:
+                rd.read(k)
+
+        t = measure(check, repeats=repeats, warmup=warmup)
+        d = measure(decode, repeats=repeats, warmup=warmup)
+    return dict(result, seconds=t.median, decode_s=d.median)
+
+
 def _median_run(runs: list) -> dict:
     order = sorted(range(len(runs)), key=lambda i: runs[i]["wall_s"])
     return runs[order[len(runs) // 2]]
@@ -335,6 +373,20 @@ def bench_real(*, quick: bool = False) -> dict:
         print(f"dense mode FAILED: {type(exc).__name__}: {exc}")
         traceback.print_exc()
         out["dense"] = {"error": f"{type(exc).__name__}: {exc}"}
+
+    # -- the rig check (SIFT descriptors: vertical offset, epipolar distance, cameras in front) ----------------------
+    try:
+        out["rig_check"] = _rig_check(folder, rig, n, reps, warm)
+        rc = out["rig_check"]
+        base = f"{fmt_ratio(rc['seconds'] / sparse['wall_s'])} of the sparse stage's wall" if sparse else ""
+        print(f"rig check (`heartcv measure`'s SIFT matches on {rc['instants']} instants of the first 30, "
+              f"{rc['matches']} matches; offset {rc['offset_px']:+.3f} px, epipolar {rc['epipolar_px']:.3f} px, "
+              f"{100 * rc['front_fraction']:.0f} % in front): {fmt_time(rc['seconds'])} (median of {reps}), "
+              f"{fmt_ratio(rc['seconds'] / rc['decode_s'])} decoding those instants; {base}")
+    except Exception as exc:
+        print(f"rig check FAILED: {type(exc).__name__}: {exc}")
+        traceback.print_exc()
+        out["rig_check"] = {"error": f"{type(exc).__name__}: {exc}"}
 
     # -- kornia backend (CPU, and CUDA where present) ---------------------------------------------------------------
     others = {}
