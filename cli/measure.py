@@ -637,21 +637,23 @@ def _descriptor_matches(reader, count, ref, cameras, roi):
 
 def _epipolar_distances(matches, rig, ref, rig_file, sizing):
     """Whether the rig describes the cameras that took the views: per camera the median symmetric epipolar distance
-    of the SIFT ``matches`` between its views and the reference camera's (:func:`_descriptor_matches`,
+    of the SIFT ``matches`` between its views and the reference camera's (:func:`_descriptor_matches`) that agree
+    with one epipolar geometry found without the rig (:func:`heartcv.matching.descriptor_inliers`;
     :func:`heartcv.matching.descriptor_epipolar_distance`), in ``sizing["epipolar_px"]`` (camera -> px; None where
     too few matches) and, with the matches' count, ``sizing["_epipolar"]`` for :func:`_epipolar_warning`. And
     whether the rig puts the matches in front of the cameras (:func:`heartcv.matching.descriptor_front_fraction`):
     a warning naming the rig file where fewer than half are (cameras swapped, a baseline the wrong way)."""
-    from heartcv.matching import descriptor_epipolar_distance, descriptor_front_fraction
+    from heartcv.matching import descriptor_epipolar_distance, descriptor_front_fraction, descriptor_inliers
 
     if not matches:
         return
     sizing["epipolar_px"], sizing["_epipolar"] = {}, {}
-    for c, m in matches.items():
+    for c, found in matches.items():
         cam = rig.cameras[c]
+        m = descriptor_inliers(rig.cameras[ref], cam, found)
         med, n = descriptor_epipolar_distance(rig.cameras[ref], cam, m, min_matches=EPIPOLAR_MIN_MATCHES)
         sizing["epipolar_px"][cam.name] = med if math.isfinite(med) else None
-        sizing["_epipolar"][cam.name] = (med, n, len(m))
+        sizing["_epipolar"][cam.name] = (med, n, len(found))
         front, n_front = descriptor_front_fraction(rig.cameras[ref], cam, m, min_matches=EPIPOLAR_MIN_MATCHES)
         log.debug("epipolar check: %d SIFT matches between cameras %s and %s, median distance %.3g px from the rig's "
                   "epipolar lines, %.0f %% of %d in front of both", n, rig.cameras[ref].name, cam.name, med,
@@ -676,12 +678,13 @@ def _epipolar_warning(rig, ref, rig_file, sizing):
     for name, (med, n, instants) in sizing.pop("_epipolar", {}).items():
         if math.isfinite(med) and med > EPIPOLAR_WARN_PX * scale:
             log.warning("%s: the rig does not describe these cameras: SIFT features matched between camera %s's and "
-                        "camera %s's views lie a median %.2f px from the rig's epipolar lines (%d matches on %d of the "
-                        "first instants; a rig that describes them gives a fraction of the pixels measured). The "
-                        "matching looks for a point's match along those lines and at most %.3g px off them, so it "
-                        "finds few points, and wrong ones. A calibration from before the focus or zoom changed, "
-                        "swapped camera names, another rig's file? Recalibrate (heartcv calibrate) or check the rig's "
-                        "cameras", rig_file, rig.cameras[ref].name, name, med, n, instants, EPIPOLAR_WARN_PX * scale)
+                        "camera %s's views lie a median %.2f px from the rig's epipolar lines (%d matches that agree "
+                        "with one epipolar geometry, on %d of the first instants; a rig that describes them gives a "
+                        "fraction of the pixels measured). The matching looks for a point's match along those lines "
+                        "and at most %.3g px off them, so it finds few points, and wrong ones. A calibration from "
+                        "before the focus or zoom changed, swapped camera names, another rig's file? Recalibrate "
+                        "(heartcv calibrate) or check the rig's cameras", rig_file, rig.cameras[ref].name, name, med,
+                        n, instants, EPIPOLAR_WARN_PX * scale)
 
 
 def _rectified_offsets(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense, sizing, ref, matches):

@@ -30,7 +30,7 @@ from .backend import OpenCVBackend
 
 __all__ = ["MatchResult", "match_points", "ray_depth_range", "patch_offsets", "normal_hypotheses",
            "local_planes", "bisector_normals", "descriptor_matches", "descriptor_v_offset",
-           "descriptor_epipolar_distance", "descriptor_front_fraction"]
+           "descriptor_epipolar_distance", "descriptor_front_fraction", "descriptor_inliers"]
 
 
 @dataclass(frozen=True)
@@ -636,6 +636,34 @@ def descriptor_matches(a, b, mask=None, *, ratio=0.75, features=2000):
         return empty
     return (np.array([ka[m.queryIdx].pt for m in good], float).reshape(-1, 2),
             np.array([kb[m.trainIdx].pt for m in good], float).reshape(-1, 2))
+
+
+def descriptor_inliers(cam_a, cam_b, matches, *, threshold_px=2.0):
+    """The ``matches`` (a sequence of ``(uv_a (N, 2), uv_b (N, 2))``, pooled) that agree with one epipolar geometry
+    of the two views, found without the rig: a fundamental matrix by RANSAC (OpenCV, ``threshold_px`` in the
+    cameras' undistorted pixels, confidence 0.999) over all of them, the rig being the same for every instant.
+    ``[(uv_a_in, uv_b_in)]`` (empty arrays with fewer than 8 matches or no model). Between views from far apart
+    (a room seen by cameras a metre apart) most descriptor matches are wrong and their median distance from any
+    epipolar line says nothing; the inliers are the matches a rig can be judged by. A near-planar scene makes the
+    fundamental matrix degenerate, but its inliers are still the matches consistent with the views' geometry."""
+    import cv2
+
+    from .triangulation import _undistorted_pixels
+
+    ua = np.concatenate([np.asarray(m[0], float).reshape(-1, 2) for m in matches]) if matches else np.zeros((0, 2))
+    ub = np.concatenate([np.asarray(m[1], float).reshape(-1, 2) for m in matches]) if matches else np.zeros((0, 2))
+    empty = [(np.zeros((0, 2)), np.zeros((0, 2)))]
+    if len(ua) < 8:
+        return empty
+    pa, pb = _undistorted_pixels(cam_a, ua)[:, :2], _undistorted_pixels(cam_b, ub)[:, :2]
+    ok = np.isfinite(pa).all(axis=1) & np.isfinite(pb).all(axis=1)
+    if ok.sum() < 8:
+        return empty
+    _, mask = cv2.findFundamentalMat(pa[ok], pb[ok], cv2.FM_RANSAC, float(threshold_px), 0.999, 10000)
+    if mask is None:
+        return empty
+    keep = np.flatnonzero(ok)[mask.ravel().astype(bool)]
+    return [(ua[keep], ub[keep])]
 
 
 def descriptor_epipolar_distance(cam_a, cam_b, matches, *, min_matches=20):

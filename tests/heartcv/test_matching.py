@@ -12,6 +12,7 @@ from heartcv.matching import (
     bisector_normals,
     descriptor_epipolar_distance,
     descriptor_front_fraction,
+    descriptor_inliers,
     descriptor_matches,
     descriptor_v_offset,
     local_planes,
@@ -378,7 +379,9 @@ def test_descriptor_epipolar_distance_against_the_rig():
     views lie a median < 0.3 px from the rig's epipolar lines; with the second camera tilted 1 degree about the
     baseline in the rig (a stale calibration) they lie ~ f tan(1 deg) = 7 px off (5-10); with the cameras swapped
     over 1 px (2 px: a nearly horizontal baseline keeps most of the rows); no matches: NaN. The matches' rays meet
-    in front of both cameras (> 90 %); with the views swapped behind them (< 10 % in front)."""
+    in front of both cameras (> 90 %); with the views swapped behind them (< 10 % in front). Among 1.5 times as many
+    random wrong matches the inliers of one epipolar geometry found without the rig are the true ones, and judge
+    the rig as before."""
     import cv2
 
     from heartcv.camera import Camera, pose_matrix
@@ -419,3 +422,16 @@ def test_descriptor_epipolar_distance_against_the_rig():
     back, _ = descriptor_front_fraction(cams[0], cams[1], [(ub, ua) for ua, ub in m])
     assert back < 0.1, back
     assert np.isnan(descriptor_front_fraction(cams[0], cams[1], [(np.zeros((0, 2)), np.zeros((0, 2)))])[0])
+    # wrong matches (views far apart): 1.5 times as many random pairs as true ones. Their median distance from the
+    # rig's lines is large; the inliers of one epipolar geometry found without the rig are the true ones, judged
+    # as before (< 0.3 px, and the stale rig 5-10 px)
+    ua, ub = m[0]
+    rng = np.random.default_rng(4)
+    k = int(1.5 * len(ua))
+    noisy = [(np.r_[ua, rng.uniform(0, [w, h], (k, 2))], np.r_[ub, rng.uniform(0, [w, h], (k, 2))])]
+    assert descriptor_epipolar_distance(cams[0], cams[1], noisy)[0] > 5.0
+    inl = descriptor_inliers(cams[0], cams[1], noisy)
+    assert len(ua) * 0.9 <= len(inl[0][0]) <= len(ua) + 0.05 * k, (len(inl[0][0]), len(ua), k)
+    assert descriptor_epipolar_distance(cams[0], cams[1], inl)[0] < 0.3
+    assert 5.0 < descriptor_epipolar_distance(cams[0], stale, descriptor_inliers(cams[0], stale, noisy))[0] < 10.0
+    assert len(descriptor_inliers(cams[0], cams[1], [(ua[:5], ub[:5])])[0][0]) == 0
