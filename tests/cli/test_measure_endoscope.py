@@ -420,25 +420,31 @@ def test_invivo_later_half_fits_a_patch_to_its_view(invivo_rig, tmp_path):
     assert patch["rms_m"] < 5e-4, patch
 
 
+def _right_moved(pair, seq, dy):
+    """A copy of the pair's sequence with the right views moved ``dy`` px down (a pair rectified ``dy`` px off)."""
+    import cv2
+
+    for cam in ("cam0", "cam1"):
+        (seq / cam).mkdir(parents=True)
+        for f in sorted((pair / "seq" / cam).iterdir()):
+            img = cv2.imread(str(f))
+            if cam == "cam1":
+                img = cv2.warpAffine(img, np.float32([[1, 0, 0], [0, 1, dy]]), (W, H), flags=cv2.INTER_CUBIC,
+                                     borderMode=cv2.BORDER_REFLECT)
+            cv2.imwrite(str(seq / cam / f.name), img)
+    return seq
+
+
 def test_a_pair_rectified_off_vertically_is_measured_with_its_offset(pair, tmp_path):
     """The synthetic rectified pair with its right views moved 0.6 px down (a pair rectified slightly off): with
     the rig of a rectified pair, measure finds the offset from its first instants (--vertical-offset auto, within
     0.1 px; measure_data.rectified_v_offsets), measures with the right camera's principal point there, says so in
     --json and the file's metadata, and its reprojection errors are smaller than with --vertical-offset none (the
     rig as given). The pair as rendered reads no offset to speak of (under 0.05 px, if one is found at all)."""
-    import cv2
 
     from heartcv.tracker.io import read_measurements
 
-    seq = tmp_path / "seq"
-    for cam in ("cam0", "cam1"):
-        (seq / cam).mkdir(parents=True)
-        for f in sorted((pair / "seq" / cam).iterdir()):
-            img = cv2.imread(str(f))
-            if cam == "cam1":
-                img = cv2.warpAffine(img, np.float32([[1, 0, 0], [0, 1, 0.6]]), (W, H), flags=cv2.INTER_CUBIC,
-                                     borderMode=cv2.BORDER_REFLECT)
-            cv2.imwrite(str(seq / cam / f.name), img)
+    seq = _right_moved(pair, tmp_path / "seq", 0.6)
     res, out = _measure(pair, tmp_path, seq=seq)
     assert res.exit_code == 0, res.output
     s = json.loads(res.stdout)
@@ -462,17 +468,7 @@ def test_a_pair_rectified_pixels_off_is_measured_with_its_offset(pair, tmp_path,
     epipolar line (1 px): SIFT descriptors find the offset without the rig, the probes refine it from there, and
     measure finds it within 0.1 px and measures as well as on the pair as rendered (reprojection RMS within 1.5 times
     its, and as many points within a tenth). Before, the probes saw at most about a pixel of it."""
-    import cv2
-
-    seq = tmp_path / "seq"
-    for cam in ("cam0", "cam1"):
-        (seq / cam).mkdir(parents=True)
-        for f in sorted((pair / "seq" / cam).iterdir()):
-            img = cv2.imread(str(f))
-            if cam == "cam1":
-                img = cv2.warpAffine(img, np.float32([[1, 0, 0], [0, 1, dy]]), (W, H), flags=cv2.INTER_CUBIC,
-                                     borderMode=cv2.BORDER_REFLECT)
-            cv2.imwrite(str(seq / cam / f.name), img)
+    seq = _right_moved(pair, tmp_path / "seq", dy)
     res, _ = _measure(pair, tmp_path, seq=seq)
     assert res.exit_code == 0, res.output
     s = json.loads(res.stdout)
@@ -491,17 +487,7 @@ def test_dense_measures_a_pair_rectified_pixels_off_with_its_offset(pair, tmp_pa
     it differs from the rig's by more than 0.1 px (their bias) plus three standard errors. The pair with its right
     views moved 4.5 px down: the offset within 0.15 px, and as many dense points within a tenth as the pair as
     rendered, where it gives no offset (with --vertical-offset none: far fewer)."""
-    import cv2
-
-    seq = tmp_path / "seq"
-    for cam in ("cam0", "cam1"):
-        (seq / cam).mkdir(parents=True)
-        for f in sorted((pair / "seq" / cam).iterdir()):
-            img = cv2.imread(str(f))
-            if cam == "cam1":
-                img = cv2.warpAffine(img, np.float32([[1, 0, 0], [0, 1, 4.5]]), (W, H), flags=cv2.INTER_CUBIC,
-                                     borderMode=cv2.BORDER_REFLECT)
-            cv2.imwrite(str(seq / cam / f.name), img)
+    seq = _right_moved(pair, tmp_path / "seq", 4.5)
     res, _ = _measure(pair, tmp_path / "a", "--dense", seq=seq)
     assert res.exit_code == 0, res.output
     s = json.loads(res.stdout)
