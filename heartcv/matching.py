@@ -659,8 +659,11 @@ def descriptor_inliers(cam_a, cam_b, matches, *, threshold_px=2.0):
     ok = np.isfinite(pa).all(axis=1) & np.isfinite(pb).all(axis=1)
     if ok.sum() < 8:
         return empty
-    _, mask = cv2.findFundamentalMat(pa[ok], pb[ok], cv2.FM_RANSAC, float(threshold_px), 0.999, 10000)
-    if mask is None:
+    try:
+        _, mask = cv2.findFundamentalMat(pa[ok], pb[ok], cv2.FM_RANSAC, float(threshold_px), 0.999, 10000)
+    except cv2.error:               # degenerate configurations (all matches on a line or a point)
+        return empty
+    if mask is None or len(mask) != ok.sum():
         return empty
     keep = np.flatnonzero(ok)[mask.ravel().astype(bool)]
     return [(ua[keep], ub[keep])]
