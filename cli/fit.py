@@ -64,6 +64,9 @@ MAX_STARTS = 1000
               help="An estimated input's rigid motion: 'auto' adds harmonics of a respiration rate when the fit's "
                    "translation shows one (at least 2 breaths in the fitted frames, explaining half its variance); "
                    "'none' leaves respiration to the random-walk translation.")
+@click.option("--respiration-band", default=None, metavar="LO,HI",
+              help="The respiration rates searched, in Hz (default 0.1,0.7: 6-42 breaths a minute; a rat breathes "
+                   "1-2.5 Hz), capped at half the heart rate; also the box of the GE's sampled respiration rate.")
 @click.option("--rigid-ar", type=click.Choice(("auto", "none", "1", "2", "3", "4")), default="auto",
               show_default=True,
               help="An estimated input's rigid translation beyond the heartbeat's and respiration's harmonics: its "
@@ -88,7 +91,8 @@ MAX_STARTS = 1000
                    "frames standing in for the input's motion (and 'observed' if that placement fails).")
 @json_opt
 def fit(measurements, model_file, output, frames, duration, starts, seed, max_evaluations, input_mode, heart_rate_hz,
-        heart_rate_band, harmonics, respiration, rigid_ar, rigid_harmonics, field_degree, patch_mode, as_json):
+        heart_rate_band, harmonics, respiration, respiration_band, rigid_ar, rigid_harmonics, field_degree, patch_mode,
+        as_json):
     """Fit the parameters of MODEL's estimation.estimate to MEASUREMENTS by bounded weighted least squares.
 
     The patch is simulated from equilibrium at the first frame's input with the measured inputs; residuals are
@@ -124,7 +128,10 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
     estimate_input = _input_mode(input_mode, meas, m, measurements)
     if heart_rate_hz is not None and not estimate_input:
         raise BadInput("--heart-rate-hz applies to an estimated input (--input estimate) only")
-    band = BAND_HZ if heart_rate_band is None else _band(heart_rate_band)
+    band = BAND_HZ if heart_rate_band is None else _band(heart_rate_band, "--heart-rate-band", 0.1, 20.0)
+    resp_band = None if respiration_band is None else _band(respiration_band, "--respiration-band", 0.01, 10.0)
+    if respiration_band is not None and (not estimate_input or respiration == "none"):
+        raise BadInput("--respiration-band applies to an estimated input (--input estimate) with --respiration auto")
     if heart_rate_band is not None and not estimate_input:
         raise BadInput("--heart-rate-band applies to an estimated input (--input estimate) only")
     if heart_rate_hz is not None and not band[0] <= heart_rate_hz <= band[1]:
@@ -155,7 +162,7 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
                                                               0 if rigid_ar == "none" else int(rigid_ar),
                                                               None if field_degree is None
                                                               else int(field_degree), rigid_harmonics,
-                                                              heart_rate_hz, band)
+                                                              heart_rate_hz, band, resp_band)
             else:
                 result = run_fit(m, meas, np.random.default_rng(seed), frames=frames, starts=starts,
                                  max_evaluations=max_evaluations)
@@ -258,20 +265,20 @@ def _observed_patch(rig_meas, m, output):
     return model, to_patch_frame(rig_meas, op.registration), reg
 
 
-def _band(text):
-    """``--heart-rate-band LO,HI`` -> (lo, hi) Hz, 0.1 <= lo < hi <= 20; exit 2 otherwise."""
+def _band(text, option, lowest, highest):
+    """``option LO,HI`` -> (lo, hi) Hz, ``lowest`` <= lo < hi <= ``highest``; exit 2 otherwise."""
     try:
         lo, hi = (float(v) for v in str(text).split(","))
     except ValueError:
-        raise BadInput(f"--heart-rate-band: LO,HI in Hz expected (e.g. 0.5,4), got {text!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and 0.1 <= lo < hi <= 20.0):
-        raise BadInput(f"--heart-rate-band {text}: 0.1 <= LO < HI <= 20 Hz expected")
+        raise BadInput(f"{option}: LO,HI in Hz expected (e.g. 0.5,4), got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and lowest <= lo < hi <= highest):
+        raise BadInput(f"{option} {text}: {lowest:g} <= LO < HI <= {highest:g} Hz expected")
     return lo, hi
 
 
 def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics, respiration=True,
                        rigid_ar_order=None, field_degree=None, rigid_harmonics=None, heart_rate_hz=None,
-                       band=None):
+                       band=None, respiration_band=None):
     """The fit with an estimated input (heart rate from the tracks, or ``heart_rate_hz`` as given; harmonics and
     rigid motion profiled; the respiration rate from the rigid motion when ``respiration`` and one is seen):
     ``(FitResult, estimated_input entry)``; StageFailed (exit 1) for a recording without a heartbeat."""
@@ -287,6 +294,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
         FIELD_DEGREE,
         HARMONICS,
         PEAK_PROMINENCE,
+        RESPIRATION_BAND_HZ,
         NoHeartbeat,
         NotProminent,
         Respiration,
@@ -346,8 +354,9 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     if not result.converged:
         return result, None
     alpha, alpha_std, rigid = prob.input_solution(result.theta, result.reduced_chi2)
-    resp = estimate_respiration(meas.times[:K], rigid[:, :3], hr.frequency_hz, heart_harmonics=H) if respiration \
-        else Respiration(None, reason="--respiration none")
+    resp_band = RESPIRATION_BAND_HZ if respiration_band is None else tuple(respiration_band)
+    resp = estimate_respiration(meas.times[:K], rigid[:, :3], hr.frequency_hz, heart_harmonics=H, band=resp_band) \
+        if respiration else Respiration(None, reason="--respiration none")
     if resp.seen:
         log.info("respiration %.3g ± %.2g Hz (%.1f per minute) from the fit's rigid motion: %.1f breaths, its "
                  "harmonics explain %.0f %% of the translation", resp.frequency_hz, resp.std_hz,
@@ -376,7 +385,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                              "peak_background_ratio": hr.background_ratio if math.isfinite(hr.background_ratio)
                              else None,
                              "beats": hr.beats, "points": hr.points, "band_hz": [float(band[0]), float(band[1])]},
-                 respiration=resp.to_dict(),
+                 respiration=dict(resp.to_dict(), band_hz=[float(resp_band[0]), float(resp_band[1])]),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
                  held_fixed=["E"] if fit_model is not m else [], fit_frames=K, rigid_ar_order=block.ar_order,
                  field_degree=int(field_degree),

@@ -330,7 +330,13 @@ def _rate_prior(estimator, input_block, fitted, heart_rate_walk=None):
     """The GE with an estimated input samples the heart rate, and the respiration rate when the fit saw one: their
     priors from the fit (docs/model.md §17); ``heart_rate_walk`` (per square-root second) replaces the heart rate's
     default random walk."""
-    from heartcv.tracker.unknown_input import BAND_HZ, RATE_WALK_PER_SQRT_S, RatePrior, respiration_prior
+    from heartcv.tracker.unknown_input import (
+        BAND_HZ,
+        RATE_WALK_PER_SQRT_S,
+        RESPIRATION_BAND_HZ,
+        RatePrior,
+        respiration_prior,
+    )
 
     if estimator != "ge" or input_block is None:
         return None
@@ -343,31 +349,50 @@ def _rate_prior(estimator, input_block, fitted, heart_rate_walk=None):
         resp = fitted.estimated_input.get("respiration") if fitted is not None else None
         std = resp.get("std_hz") if isinstance(resp, dict) else None
         rates.append(respiration_prior(input_block.respiration_hz,
-                                       float(std) if isinstance(std, (int, float)) and math.isfinite(std) else 0.0))
+                                       float(std) if isinstance(std, (int, float)) and math.isfinite(std) else 0.0,
+                                       _rate_band(resp, None) or RESPIRATION_BAND_HZ))
     return rates
+
+
+def _rate_band(entry, params_file, field=None):
+    """The ``band_hz`` of a parameters file's ``heart_rate`` or ``respiration`` entry: ``(lo, hi)``, or None where it
+    has none (files written before it); with ``params_file``, exit 2 naming ``field`` where it is not ``[lo, hi]``
+    with 0 < lo < hi (without, a malformed band reads as none)."""
+    from heartcv.tracker.files import InputError
+
+    band = entry.get("band_hz") if isinstance(entry, dict) else None
+    if band is None:
+        return None
+    if not (isinstance(band, (list, tuple)) and len(band) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in band)
+            and 0 < band[0] < band[1]):
+        if params_file is None:
+            return None
+        raise InputError(params_file, f"[lo, hi] in Hz with 0 < lo < hi expected, got {band!r}", field)
+    return float(band[0]), float(band[1])
 
 
 def _check_rate_band(input_block, fitted, params_file):
     """Exit 2 naming the parameters file where its heart-rate band (``estimated_input.heart_rate.band_hz``, heartcv
-    fit --heart-rate-band; default 0.5-4 Hz) is not ``[lo, hi]`` with 0 < lo < hi, or does not hold its heart rate
-    (the GE samples the rate inside that band)."""
+    fit --heart-rate-band; default 0.5-4 Hz) or respiration band (``estimated_input.respiration.band_hz``,
+    --respiration-band; default 0.1-0.7 Hz) is malformed or does not hold its rate (the GE samples the rates inside
+    their bands)."""
     from heartcv.tracker.files import InputError
-    from heartcv.tracker.unknown_input import BAND_HZ
+    from heartcv.tracker.unknown_input import BAND_HZ, RESPIRATION_BAND_HZ
 
-    hr = fitted.estimated_input.get("heart_rate") if isinstance(fitted.estimated_input, dict) else None
-    band = hr.get("band_hz") if isinstance(hr, dict) else None
-    field = "estimated_input.heart_rate.band_hz"
-    if band is None:
-        band = BAND_HZ
-    elif not (isinstance(band, (list, tuple)) and len(band) == 2
-              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in band)
-              and 0 < band[0] < band[1]):
-        raise InputError(params_file, f"[lo, hi] in Hz with 0 < lo < hi expected, got {band!r}", field)
-    f = input_block.frequency_hz
-    if not band[0] <= f <= band[1]:
-        raise InputError(params_file, f"the heart rate {f:.4g} Hz lies outside its band {band[0]:g}-{band[1]:g} Hz "
-                         "(heartcv fit --heart-rate-band)", field if hr and "band_hz" in hr else
-                         "estimated_input.frequency_hz")
+    ei = fitted.estimated_input if isinstance(fitted.estimated_input, dict) else {}
+    checks = [("heart_rate", input_block.frequency_hz, BAND_HZ, "estimated_input.frequency_hz", "heart rate",
+               "--heart-rate-band")]
+    if input_block.respiration_harmonics:
+        checks.append(("respiration", input_block.respiration_hz, RESPIRATION_BAND_HZ,
+                       "estimated_input.respiration_hz", "respiration rate", "--respiration-band"))
+    for key, f, default, rate_field, what, option in checks:
+        field = f"estimated_input.{key}.band_hz"
+        band = _rate_band(ei.get(key), params_file, field)
+        if not (band or default)[0] <= f <= (band or default)[1]:
+            lo, hi = band or default
+            raise InputError(params_file, f"the {what} {f:.4g} Hz lies outside its band {lo:g}-{hi:g} Hz (heartcv "
+                             f"fit {option})", field if band else rate_field)
 
 
 def _fitted_heart_rate(fitted) -> dict:
@@ -379,13 +404,12 @@ def _fitted_heart_rate(fitted) -> dict:
     hr = entry.get("heart_rate") if isinstance(entry.get("heart_rate"), dict) else {}
     std = hr.get("std_hz")
     how = "given: --heart-rate-hz" if hr.get("source") == "given" else "the tracks' spectrum"
-    band = hr.get("band_hz")
+    band = _rate_band(hr, None)
     out = {"heart_rate_hz": float(entry["frequency_hz"]),
            "heart_rate_std_hz": float(std) if isinstance(std, (int, float)) else None,
            "heart_rate_source": f"parameters file (heartcv fit, {how})"}
-    if isinstance(band, (list, tuple)) and len(band) == 2 and all(isinstance(v, (int, float)) for v in band) \
-            and 0 < band[0] < band[1]:
-        out["heart_rate_band_hz"] = [float(band[0]), float(band[1])]
+    if band is not None:
+        out["heart_rate_band_hz"] = list(band)
     resp = entry.get("respiration") if isinstance(entry.get("respiration"), dict) else {}
     if isinstance(resp.get("frequency_hz"), (int, float)):
         rstd = resp.get("std_hz")

@@ -285,10 +285,11 @@ class RatePrior:
         return self.walk_per_sqrt_s * math.sqrt(dt)
 
 
-def respiration_prior(frequency_hz: float, std_hz: float = 0.0) -> RatePrior:
+def respiration_prior(frequency_hz: float, std_hz: float = 0.0, band=RESPIRATION_BAND_HZ) -> RatePrior:
     """The respiration rate as a sampled parameter of the GE: :data:`RESPIRATION_WALK_PER_SQRT_S`,
-    :data:`RESPIRATION_PRIOR_MIN`, the box :data:`RESPIRATION_BAND_HZ`."""
-    return RatePrior(frequency_hz, std_hz, "respiration rate", RESPIRATION_BAND_HZ, RESPIRATION_WALK_PER_SQRT_S,
+    :data:`RESPIRATION_PRIOR_MIN`, the box ``band`` (default :data:`RESPIRATION_BAND_HZ`; ``fit
+    --respiration-band``)."""
+    return RatePrior(frequency_hz, std_hz, "respiration rate", tuple(band), RESPIRATION_WALK_PER_SQRT_S,
                      RESPIRATION_PRIOR_MIN)
 
 

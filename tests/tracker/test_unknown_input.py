@@ -506,6 +506,23 @@ def test_respiration_rate_of_a_breathing_translation_within_2_percent(fr):
     assert abs(r.frequency_hz - fr) < 3 * r.std_hz and r.explained > 0.9
 
 
+def test_a_rat_s_breath_is_seen_in_its_band_and_sampled_in_its_box():
+    """A rat: breath at 1.8 Hz under a heartbeat at 6 Hz, 4 s at 150 fps. The default band (0.1-0.7 Hz) does not
+    see it; the band 1-2.5 Hz (fit --respiration-band) finds it within 2 %; its GE prior boxes the rate there
+    (respiration_prior's band; the default box refuses 1.8 Hz)."""
+    from heartcv.tracker.unknown_input import estimate_respiration, respiration_prior
+
+    t, tr = _breathing(1.8, fh=6.0, K=600, fps=150.0)
+    assert not estimate_respiration(t, tr, 6.0).seen
+    r = estimate_respiration(t, tr, 6.0, band=(1.0, 2.5))
+    assert r.seen, r.reason
+    assert abs(r.frequency_hz - 1.8) / 1.8 < 0.02
+    prior = respiration_prior(r.frequency_hz, r.std_hz, (1.0, 2.5))
+    assert prior.bounds_phi == pytest.approx((np.log(1.0), np.log(2.5)))
+    with pytest.raises(ValueError, match="respiration rate: a frequency in 0.1-0.7 Hz expected"):
+        respiration_prior(r.frequency_hz, r.std_hz)
+
+
 def test_no_respiration_short_or_absent():
     """Under two breaths in the window, or no breath at all (heartbeat, drift and noise only): not seen, with the
     reason; the block built then has no respiration oscillators."""
