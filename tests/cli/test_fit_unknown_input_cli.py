@@ -812,6 +812,27 @@ def test_the_ge_follows_a_heart_that_speeds_up(tmp_path):
     assert ratio["ge"] < 0.85 * ratio["kf"], ratio
 
 
+def _ge_run(meas, params, tmp_path):
+    """``track MEAS --params PARAMS --estimator ge --seed 1``: the estimate file read back."""
+    ge = str(tmp_path / "ge.npz")
+    res = CliRunner().invoke(main, ["track", meas, "--model", PAPER, "--params", params, "--estimator", "ge",
+                                    "--seed", "1", "-o", ge])
+    assert res.exit_code == 0, res.output
+    return read_estimates(ge)
+
+
+def _track_with_band(meas, params, key, band, tmp_path):
+    """The GE tracking MEAS with a copy of PARAMS whose ``estimated_input.<key>.band_hz`` is ``band``."""
+    import yaml
+
+    d = yaml.safe_load(open(params))
+    d["estimated_input"][key]["band_hz"] = band
+    bad = tmp_path / "bad_band.yaml"
+    bad.write_text(yaml.safe_dump(d))
+    return CliRunner().invoke(main, ["track", meas, "--model", PAPER, "--params", str(bad), "--estimator", "ge",
+                                     "-o", str(tmp_path / "bad_band.npz")])
+
+
 def test_a_heart_faster_than_240_bpm_needs_its_band(tmp_path, blind_file):
     """The blind paper patch (60 bpm, 30 fps, 6 s) with its clock running 5 times faster: a 300-bpm heart (a rat's)
     filmed at 150 fps. fit searches 0.5-4 Hz by default and exits 1 (no periodic motion there); with
@@ -819,7 +840,6 @@ def test_a_heart_faster_than_240_bpm_needs_its_band(tmp_path, blind_file):
     band (before, a parameters file with 5 Hz stopped track with an internal error) and ends within 2 % of 5 Hz;
     --heart-rate-hz outside the band, a malformed band, and a parameters file whose band does not hold its rate
     exit 2."""
-    import yaml
 
     m = read_measurements(blind_file)
     fast = str(tmp_path / "fast.npz")
@@ -833,11 +853,7 @@ def test_a_heart_faster_than_240_bpm_needs_its_band(tmp_path, blind_file):
     assert json.loads(res.stdout)["heart_rate_hz"] == pytest.approx(5.0, rel=0.01)
     hr = read_parameters(params).estimated_input["heart_rate"]
     assert hr["band_hz"] == [3.0, 10.0]
-    ge = str(tmp_path / "ge.npz")
-    res = CliRunner().invoke(main, ["track", fast, "--model", PAPER, "--params", params, "--estimator", "ge",
-                                    "--seed", "1", "-o", ge])
-    assert res.exit_code == 0, res.output
-    e = read_estimates(ge)
+    e = _ge_run(fast, params, tmp_path)
     assert e.meta["heart_rate_band_hz"] == [3.0, 10.0]
     assert e.heart_rate[-1, 0] == pytest.approx(5.0, rel=0.02)
     for args, message in ((["--heart-rate-hz", "5"], "--heart-rate-hz 5: 0.5-4 Hz expected"),
@@ -845,12 +861,7 @@ def test_a_heart_faster_than_240_bpm_needs_its_band(tmp_path, blind_file):
                           (["--heart-rate-band", "10,3"], "--heart-rate-band 10,3: 0.1 <= LO < HI <= 20 Hz")):
         res = CliRunner().invoke(main, ["fit", fast, "--model", PAPER, "-o", str(tmp_path / "x.yaml"), *args])
         assert res.exit_code == 2 and message in res.output, res.output
-    d = yaml.safe_load(open(params))
-    d["estimated_input"]["heart_rate"]["band_hz"] = [0.5, 4.0]
-    bad = tmp_path / "bad.yaml"
-    bad.write_text(yaml.safe_dump(d))
-    res = CliRunner().invoke(main, ["track", fast, "--model", PAPER, "--params", str(bad), "--estimator", "ge",
-                                    "-o", str(tmp_path / "ge2.npz")])
+    res = _track_with_band(fast, params, "heart_rate", [0.5, 4.0], tmp_path)
     assert res.exit_code == 2 and "estimated_input.heart_rate.band_hz" in res.output, res.output
     assert "outside its band 0.5-4 Hz" in res.output, res.output
 
@@ -863,7 +874,6 @@ def test_a_fast_breath_needs_its_band(tmp_path):
     1,2.5 it is found within 3 %, recorded with its band, and the GE samples it inside that band (ends within 3
     sigma or 2 % of 2 Hz). --respiration-band with --respiration none exits 2; a parameters file whose respiration
     band does not hold its rate exits 2 in track."""
-    import yaml
 
     sim = str(tmp_path / "sim.npz")
     res = CliRunner().invoke(main, ["model", "simulate", PAPER, "--duration", "15", "--seed", "2", "-o", sim])
@@ -883,18 +893,9 @@ def test_a_fast_breath_needs_its_band(tmp_path):
     assert json.loads(res.stdout)["respiration_hz"] == pytest.approx(2.0, rel=0.03)
     resp = read_parameters(params).estimated_input["respiration"]
     assert resp["band_hz"] == [1.0, 2.5]
-    ge = str(tmp_path / "ge.npz")
-    res = CliRunner().invoke(main, ["track", path, "--model", PAPER, "--params", params, "--estimator", "ge",
-                                    "--seed", "1", "-o", ge])
-    assert res.exit_code == 0, res.output
-    r = read_estimates(ge).respiration_rate
+    r = _ge_run(path, params, tmp_path).respiration_rate
     assert abs(r[-1, 0] - 2.0) < max(3 * r[-1, 1], 0.04), r[-1]
     res = CliRunner().invoke(main, base + ["--respiration-band", "1,2.5", "--respiration", "none"])
     assert res.exit_code == 2 and "--respiration-band applies to" in res.output, res.output
-    d = yaml.safe_load(open(params))
-    d["estimated_input"]["respiration"]["band_hz"] = [0.1, 0.7]
-    bad = tmp_path / "bad.yaml"
-    bad.write_text(yaml.safe_dump(d))
-    res = CliRunner().invoke(main, ["track", path, "--model", PAPER, "--params", str(bad), "--estimator", "ge",
-                                    "-o", str(tmp_path / "ge2.npz")])
+    res = _track_with_band(path, params, "respiration", [0.1, 0.7], tmp_path)
     assert res.exit_code == 2 and "estimated_input.respiration.band_hz" in res.output, res.output
