@@ -112,6 +112,11 @@ MAX_WORKERS = 1024
                    "camera's views lie below the reference camera's in the first frames (a pair rectified slightly "
                    "off) and, where that is significant, measures with its principal point moved by it; none: the rig "
                    "as given. Other rigs, and --dense, use the rig as given.")
+@click.option("--repeated-frames", type=click.Choice(["drop", "keep"]), default="drop", show_default=True,
+              help="A camera's frame that repeats its previous one (no new exposure: a frame-rate conversion, a "
+                   "capture that froze or dropped frames; identical up to compression noise while the view was "
+                   "moving): drop leaves it out of its instant as a missing image (with fewer than two views left "
+                   "the instant has all points missing); keep measures it as a frame of its own.")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False), default=None,
               help="Render truth (truth.npz of `heartcv render sequence`): report the 3-D error of every point.")
 @click.option("--csv", "csv_file", type=click.Path(dir_okay=False), default=None,
@@ -122,7 +127,8 @@ MAX_WORKERS = 1024
 def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed, ref_camera, max_points, min_distance,
             corner_block, corner_quality, frames, start, dense, fb_max, ncc_allowance, match_ncc_allowance, min_ncc,
             max_depth_std, max_reprojection, min_angle, max_gap, window, no_specular, overlay_dir, overlay_video,
-            backend, device, pixel_sigma, highpass, size_factor, fields, field_order, vertical_offset, truth_file,
+            backend, device, pixel_sigma, highpass, size_factor, fields, field_order, vertical_offset, repeated_frames,
+            truth_file,
             csv_file, workers, as_json):
     """Track 3-D surface points through SEQUENCE (one folder of images or one video per camera; the same file
     name is the same instant; or, with --packed, one holding all the views) seen by the cameras of RIG, and write
@@ -205,6 +211,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     t_start = time.perf_counter()
     mode = "gray" if dense else "color"
     sizing = {"fields": fields} if dense else {"size_factor": _size_factor(size_factor), "fields": fields}
+    sizing["repeated_frames"] = repeated_frames
     first_field = None
     instant_names = list(source.frame_names[:count])
     with FrameReader(source, mode=mode, sizes=[c.size for c in rig.cameras], frames=range(count),
@@ -232,6 +239,10 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         mset.meta["rig_vertical_offsets_px"] = dict(sizing["vertical_offsets_px"])
     if (sizing or {}).get("epipolar_px"):
         mset.meta["rig_epipolar_px"] = dict(sizing["epipolar_px"])
+    if run.repeated:
+        mset.meta["repeated_views"] = {n: [int(grid[0][k]) if grid is not None else int(k)
+                                           for k, c in run.repeated if names[c] == n]
+                                       for n in names if any(names[c] == n for _, c in run.repeated)}
     if grid is not None:
         sizing = dict(sizing or {}, frame_grid={"interval_s": grid[2], "frames": int(grid[1].size),
                                                 "missing_frames": int(grid[1].size - len(times)),
@@ -274,7 +285,8 @@ def _guard(output, csv_file, inputs):
     seq = Path(inputs["SEQUENCE"]).resolve()
     inside = {f"SEQUENCE/{Path(p).resolve().relative_to(seq)}": p for p in outputs.values()
               if p is not None and Path(p).exists() and Path(p).resolve().is_relative_to(seq)}
-    guard_outputs(outputs, {**inputs, **inside}, files=list(outputs.items()))
+    guard_outputs(outputs, {**inputs, **inside},
+                  files=[("-o/--output", output, ("heartcv.measurements",)), ("--csv", csv_file)])
 
 
 # -- inputs ------------------------------------------------------------------------------------------------------
@@ -460,7 +472,8 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
                 roi = region(first)
             field = _choose_field(first, roi, rig.cameras[opts.ref_camera].name, sizing)
             with progress(reader, "measuring (dense)", count, verbosity) as frames:
-                run = dense_sequence(frames, rig.cameras, opts, roi=roi, field=field)
+                run = dense_sequence(frames, rig.cameras, opts, roi=roi, field=field,
+                                     drop_repeats=(sizing or {}).get("repeated_frames", "drop") == "drop")
         else:
             ref_cam = rig.cameras[opts.ref_camera]
             sizing = {} if sizing is None else sizing
@@ -489,16 +502,33 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
             opts = replace(opts, size_factor=sizing["size_factor"])
             with progress(reader, "measuring", count, verbosity) as frames:
                 run = measure_sequence(frames, rig.cameras, opts, roi=roi, backend=backend,
-                                       reduction=sizing.get("reduction", 1.0), field=field)
+                                       reduction=sizing.get("reduction", 1.0), field=field,
+                                       drop_repeats=sizing.get("repeated_frames", "drop") == "drop")
     except InputError as exc:
         raise (exc if exc.path is not None else exc.in_file(sequence)) from None
     except MeasureFailed as exc:   # the images or the rig's cameras: name both
         raise StageFailed(f"{sequence}: {exc} (cameras of {rig_file})") from None
     for k, msg in run.problems:
         log.warning("frame %d: %s; left out", k, msg)
+    if run.repeated:
+        counts = {c: sum(1 for _, v in run.repeated if v == c) for c in sorted({c for _, c in run.repeated})}
+        if sizing is not None:
+            sizing["repeated_views"] = {rig.cameras[c].name: n for c, n in counts.items()}
+        if not quiet:
+            log.warning("%s repeat%s the camera's previous image (no new exposure: a frame-rate conversion, or a "
+                        "capture that froze or dropped frames): left out as missing images (--repeated-frames keep "
+                        "measures them)", ", ".join(f"{n} of {count} images of camera {rig.cameras[c].name}"
+                                                    for c, n in counts.items()),
+                        "s" if sum(counts.values()) == 1 else "")
     if run.skipped:
-        log.warning("%d of %d frames had fewer than two readable images: all points missing there",
-                    len(run.skipped), count)
+        log.warning("%d of %d frames had fewer than two usable images (missing, unreadable or repeating the previous "
+                    "one): all points missing there", len(run.skipped), count)
+    empty = [f.frame for f in run.frames if not f.skipped and f.seen == 0]
+    if empty and not quiet:
+        from heartcv.measure_data import frame_spans
+
+        log.warning("no point was measured in %d of %d frames (%s): blank, dark, blurred or covered views?",
+                    len(empty), count, frame_spans(empty))
     rejected = run.result.rejected
     if rejected:
         log.info("candidates removed per gate: %s", ", ".join(f"{g} {n}" for g, n in rejected.items()))

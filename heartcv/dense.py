@@ -872,7 +872,7 @@ class DenseTracker:
 # A whole sequence
 # =====================================================================================================================
 def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, roi=None,
-                   clock=time.perf_counter, field: int | None = None) -> SequenceRun:
+                   clock=time.perf_counter, field: int | None = None, drop_repeats: bool = True) -> SequenceRun:
     """Dense measurement of a whole sequence: set up a :class:`DenseTracker` and feed it every instant of
     ``frames`` (the contract of :func:`heartcv.measure.measure_sequence`).
 
@@ -899,6 +899,8 @@ def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, r
         (:class:`heartcv.measure.WorkingView`; a given ``options.pixel_sigma`` is in the full images' pixels), the
         result in the full images' pixels (``uv``; ``sigma_px`` and ``reprojection_rms`` times sqrt 2). None: the
         whole images.
+    drop_repeats : bool
+        Leave out every view whose image repeats its previous one (:func:`heartcv.measure.run_frames`).
 
     Returns
     -------
@@ -923,7 +925,7 @@ def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, r
         if options.pixel_sigma is not None:            # given in the full frames' pixels
             options = replace(options, pixel_sigma=options.pixel_sigma / view.pixel_scale(options.ref_camera))
     tracker = DenseTracker(cameras, options, roi=roi)
-    run = run_frames(tracker, frames, clock, clock() - t0)
+    run = run_frames(tracker, frames, clock, clock() - t0, drop_repeats)
     if view is not None:
         run = replace(run, result=view.to_full(run.result, options.ref_camera, full_roi))
     res = run.result

@@ -34,6 +34,7 @@ input raise :class:`MeasureFailed`; input that cannot be used raises :class:`hea
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field, replace
 import math
 import time
@@ -68,7 +69,8 @@ __all__ = ["MeasureOptions", "SHARP_BLUR_PX", "texture_blur_px", "auto_size_fact
            "MeasureResult", "Highlights",
            "Measurer", "MeasureFailed", "FrameStats", "SequenceRun",
            "ROI_FRAMES", "GATES", "emptied_by", "reference_frames", "auto_region", "measure_sequence", "run_frames",
-           "assemble_result"]
+           "assemble_result", "REPEAT_LEVEL", "REPEAT_SHARE", "REPEAT_RELATIVE", "REPEAT_HISTORY", "REPEAT_UNCHANGED",
+           "changed_share", "unchanged_share", "RepeatedViews"]
 
 # Frames of the reference camera from which the automatic region of interest is computed (every third of the
 # first 30: the surface moves enough between them to tell it from the static background)
@@ -1019,12 +1021,15 @@ class SequenceRun:
     frames : tuple of FrameStats     one per instant, in order
     problems : tuple of (int, str)   (frame index, message) of every image left out (missing, unreadable, ...)
     setup_s : float                  region of interest and tracker set-up
+    repeated : tuple of (int, int)   (frame index, camera index) of every image left out because it repeats the
+                                     camera's previous one (:class:`RepeatedViews`)
     """
 
     result: MeasureResult
     frames: tuple
     problems: tuple
     setup_s: float
+    repeated: tuple = ()
 
     @property
     def skipped(self) -> list:
@@ -1145,7 +1150,7 @@ class WorkingView:
 
 def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions(), *, roi=None, roi_frames=(),
                      backend=None, clock=time.perf_counter, reduction: float = 1.0,
-                     field: int | None = None) -> SequenceRun:
+                     field: int | None = None, drop_repeats: bool = True) -> SequenceRun:
     """Measure a whole sequence: set up a :class:`Measurer` and feed it every instant of ``frames``.
 
     Parameters
@@ -1175,6 +1180,8 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
         ... (:func:`field_image`, :func:`field_camera`; before any ``reduction``); the result in the full
         images' pixels as above (``sigma_px`` and ``reprojection_rms`` times the geometric mean of the
         factors, sqrt 2 for a field alone). None: the whole images.
+    drop_repeats : bool
+        Leave out every view whose image repeats its previous one (:func:`run_frames`, :class:`RepeatedViews`).
 
     Raises
     ------
@@ -1194,7 +1201,7 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
             options = replace(options, pixel_sigma=options.pixel_sigma / view.pixel_scale(options.ref_camera))
         frames = view.frames(frames)
     measurer = Measurer(cameras, options, roi=roi, backend=backend)
-    run = run_frames(measurer, frames, clock, clock() - t0)
+    run = run_frames(measurer, frames, clock, clock() - t0, drop_repeats)
     if view.transformed:
         run = replace(run, result=view.to_full(run.result, options.ref_camera, full_roi))
     if run.result.point_ids.size == 0 or not run.result.seen.any():
@@ -1219,12 +1226,100 @@ def emptied_by(rejected) -> str:
     return "candidates removed by the " + ", ".join(parts)
 
 
-def run_frames(tracker, frames, clock, setup_s) -> SequenceRun:
+# A view's image repeats its previous one (a frame-rate conversion, a capture that froze or dropped frames: no new
+# exposure) when
+# - at most REPEAT_SHARE of its pixels change by more than REPEAT_LEVEL of the full scale (8 of 255: what
+#   re-encoding leaves of a copied frame; MPEG-4 part 2 left at most 0.09 % of the pixels of copied in-vivo frames
+#   beyond it, while consecutive frames of the in-vivo heart change at least 9.5 %, median 36 %), and at most
+#   REPEAT_RELATIVE times the median share of the view's last REPEAT_HISTORY frames that were not repeats, which
+#   must itself exceed REPEAT_SHARE (a view seen moving: a still scene, or one whose moving part is small, is never
+#   taken for repeats);
+# - and at least REPEAT_UNCHANGED of its live pixels (in both frames inside 2-98 % of the full scale) keep exactly
+#   their value: a new exposure brings fresh sensor noise (consecutive in-vivo frames keep at most 1.6 %, the
+#   rendered phantom's 5.6 % even where it barely moves), a copy none (re-encoded copies kept 73-84 %).
+REPEAT_LEVEL = 8 / 255
+REPEAT_SHARE = 0.01
+REPEAT_RELATIVE = 0.1
+REPEAT_HISTORY = 25
+REPEAT_UNCHANGED = 0.5
+
+
+def _full_scale(image) -> float:
+    """255 for 8-bit images, else the image's largest value (a 10- or 12-bit camera's frames in 16-bit files)."""
+    return 255.0 if image.dtype == np.uint8 else max(float(np.max(image)), np.finfo(float).tiny) if image.size \
+        else 1.0
+
+
+def changed_share(image, previous, level: float = REPEAT_LEVEL) -> float:
+    """The share of the pixels of ``image`` (H, W) or (H, W, C) whose value (in any channel) differs from
+    ``previous``'s by more than ``level`` of the full scale (:func:`_full_scale` of ``previous``). Every second row
+    and column (the share, not its detail). Images of different shapes: 1 (a change)."""
+    a, b = np.asarray(image), np.asarray(previous)
+    if a.shape != b.shape:
+        return 1.0
+    a, b = a[::2, ::2], b[::2, ::2]
+    diff = np.abs(a.astype(np.float32) - b.astype(np.float32))
+    if diff.ndim == 3:
+        diff = diff.max(axis=2)
+    return float(np.mean(diff > level * _full_scale(b))) if diff.size else 0.0
+
+
+def unchanged_share(image, previous) -> float:
+    """The share of the live pixels (every channel inside 2-98 % of the full scale in both images: sensor noise is
+    not clipped there) whose value is exactly ``previous``'s in every channel; every second row and column. NaN
+    where no pixel is live or the shapes differ."""
+    a, b = np.asarray(image), np.asarray(previous)
+    if a.shape != b.shape or not a.size:
+        return math.nan
+    a, b = a[::2, ::2], b[::2, ::2]
+    top = _full_scale(b)
+    live = (a > 0.02 * top) & (a < 0.98 * top) & (b > 0.02 * top) & (b < 0.98 * top)
+    same = a == b
+    if a.ndim == 3:
+        live, same = live.all(axis=2), same.all(axis=2)
+    return float(same[live].mean()) if live.any() else math.nan
+
+
+class RepeatedViews:
+    """Which views of each instant repeat their previous image (module constants ``REPEAT_*``): called with one
+    instant's images after another (None where missing; a missing image leaves the view's previous one in place),
+    returns the indices of the views whose image is a repeat. ``shares[c]``: the changed share of every comparison
+    of view ``c``, in order."""
+
+    def __init__(self, views: int):
+        self._prev = [None] * views
+        self._moving = [deque(maxlen=REPEAT_HISTORY) for _ in range(views)]
+        self.shares = [[] for _ in range(views)]
+
+    def __call__(self, images) -> list:
+        out = []
+        for c, image in enumerate(images):
+            if image is None:
+                continue
+            prev, self._prev[c] = self._prev[c], image
+            if prev is None:
+                continue
+            share = changed_share(image, prev)
+            self.shares[c].append(share)
+            seen = self._moving[c]
+            typical = float(np.median(seen)) if seen else 0.0
+            if typical > REPEAT_SHARE and share <= REPEAT_SHARE and share <= REPEAT_RELATIVE * typical \
+                    and unchanged_share(image, prev) >= REPEAT_UNCHANGED:
+                out.append(c)
+            else:
+                seen.append(share)
+        return out
+
+
+def run_frames(tracker, frames, clock, setup_s, drop_repeats: bool = True) -> SequenceRun:
     """Feed every instant of ``frames`` (``(k, images, problems)``) to a frame-by-frame tracker (:class:`Measurer`,
     ``heartcv.dense.DenseTracker``: ``step``, ``skip``, ``unusable``, ``timings``, ``detected``, ``result``) and
-    time each instant; instants the tracker cannot use are recorded with all points missing."""
-    stats, problems = [], []
+    time each instant; instants the tracker cannot use are recorded with all points missing. With
+    ``drop_repeats`` a view whose image repeats its previous one (:class:`RepeatedViews`) is left out of its
+    instant, as a missing image (``SequenceRun.repeated``)."""
+    stats, problems, repeated = [], [], []
     it = iter(frames)
+    repeats = None
     prev = clock()
     while True:
         t_wait = clock()
@@ -1234,10 +1329,19 @@ def run_frames(tracker, frames, clock, setup_s) -> SequenceRun:
         k, images, probs = item
         t_got = clock()
         problems.extend((int(k), str(m)) for m in probs)
+        same = []
+        if drop_repeats:
+            repeats = repeats or RepeatedViews(len(images))
+            same = repeats(images)
+            if same:
+                images = [None if c in same else im for c, im in enumerate(images)]
+                repeated.extend((int(k), c) for c in same)
         before = dict(tracker.timings)
         why = tracker.unusable(images)
         if why is not None:
-            tracker.skip(k, f"frame {k}: {why}")
+            tracker.skip(k, f"frame {k}: {why}" + (" (views repeating their previous image left out: "
+                                                   f"{', '.join(tracker.cameras[c].name for c in same)})"
+                                                   if same else ""))
             seen = 0
         else:
             seen = tracker.step(k, images)
@@ -1246,7 +1350,7 @@ def run_frames(tracker, frames, clock, setup_s) -> SequenceRun:
         stats.append(FrameStats(int(k), t_got - t_wait, now - prev, d["tracking"], d["triangulation"],
                                 d["detection"], int(seen), why is None and tracker.detected, why is not None))
         prev = now
-    return SequenceRun(tracker.result(), tuple(stats), tuple(problems), setup_s)
+    return SequenceRun(tracker.result(), tuple(stats), tuple(problems), setup_s, tuple(repeated))
 
 
 def _gray(image) -> np.ndarray:

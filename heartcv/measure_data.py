@@ -18,7 +18,7 @@ from .tracker.files import InputError
 __all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "GRID_TOLERANCE",
            "uniform_times", "frame_grid", "container_times", "expand_to_grid", "rectified_v_offsets",
            "rectified_cameras", "inputs_at_frames", "check_image_sizes", "truth_for_frames", "truth_statistics",
-           "reference_pixels", "measurement_summary", "CSV_HEADER", "measurement_csv_lines"]
+           "reference_pixels", "measurement_summary", "CSV_HEADER", "measurement_csv_lines", "frame_spans"]
 
 # inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
 UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
@@ -412,3 +412,17 @@ def measurement_csv_lines(mset, uv, names) -> list[str]:
         row += ["" if not np.isfinite(v) else _num(v) for v in pix[i]]
         lines.append(",".join(row))
     return lines
+
+
+def frame_spans(frames, most: int = 8) -> str:
+    """Frame indices as runs of consecutive ones, e.g. ``"4, 100-102, 150"``; after ``most`` runs ``", ... (N more
+    runs)"``."""
+    ks = sorted({int(k) for k in frames})
+    runs = []
+    for k in ks:
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k])
+    text = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs[:most])
+    return text + (f", ... ({len(runs) - most} more runs)" if len(runs) > most else "")

@@ -24,7 +24,7 @@ import numpy as np
 
 from .estimator_names import BASELINES
 from .measurements import EstimateSet, MeasurementSet
-from .unknown_input import filled_tracks, periodic_peak, spectral_peak
+from .unknown_input import filled_tracks, periodic_peak, seen_share, spectral_peak
 
 __all__ = ["BASELINES", "PERIODS", "dominant_frequency", "predict_hold", "predict_constvel",
            "predict_harmonic", "run_baseline"]
@@ -52,8 +52,7 @@ def dominant_frequency(times, positions, lo_hz: float = 0.5, hi_hz: float = 4.0)
     if K < 8:
         return float("nan")
     dt = float(np.median(np.diff(t)))
-    seen = np.isfinite(y[..., 0])
-    use = seen.mean(axis=0) >= 0.9
+    use = seen_share(y) >= 0.9
     if not use.any() or (K - 1) * dt < 2.0 / hi_hz:
         return float("nan")
     Y, _ = filled_tracks(t, y)

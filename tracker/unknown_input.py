@@ -34,7 +34,8 @@ import math
 import numpy as np
 
 __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
-           "DRIFT_PER_SQRT_S", "PEAK_RATIO", "PEAK_PROMINENCE", "BAND_HZ", "filled_tracks", "spectral_peak",
+           "DRIFT_PER_SQRT_S", "PEAK_RATIO", "PEAK_PROMINENCE", "BAND_HZ", "seen_share", "filled_tracks",
+           "spectral_peak",
            "harmonic_background_ratio", "periodic_peak", "harmonics_below_nyquist",
            "peak_prominence", "NotProminent", "heart_rate_at",
            "fit_harmonics", "input_block_from_fit", "extend_observation",
@@ -133,12 +134,22 @@ class HeartRate:
     background_ratio: float = float("nan")
 
 
+def seen_share(positions) -> np.ndarray:
+    """Per track (K, P, 3 with NaN where unseen): the share of the frames holding any observation in which it is
+    seen. A frame where nothing is seen (a frame the recording lacks: dropped, repeated, unreadable) counts against
+    no track. Zeros where no frame holds anything."""
+    seen = np.isfinite(np.asarray(positions, float)[..., 0])
+    some = seen.any(axis=1)
+    return seen[some].mean(axis=0) if some.any() else np.zeros(seen.shape[1])
+
+
 def filled_tracks(times, positions, min_seen=0.9):
-    """Tracks seen in at least ``min_seen`` of the frames, gaps filled by linear interpolation, detrended: (K, 3 P)."""
+    """Tracks seen in at least ``min_seen`` of the frames that hold any observation (:func:`seen_share`), gaps
+    filled by linear interpolation, detrended: (K, 3 P)."""
     y = np.asarray(positions, float)
     K = y.shape[0]
     seen = np.isfinite(y[..., 0])
-    use = np.flatnonzero(seen.mean(axis=0) >= min_seen)
+    use = np.flatnonzero(seen_share(y) >= min_seen)
     k = np.arange(K)
     cols = []
     for p in use:
@@ -345,7 +356,8 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
         raise NoHeartbeat(f"{duration:.3g} s: shorter than {MIN_BEATS:g} heartbeats even at {hi * 60:g} bpm")
     Y, n_points = filled_tracks(t, positions)
     if n_points == 0:
-        raise NoHeartbeat("no track is seen in 90 % of the frames: no motion signal to take a heart rate from")
+        raise NoHeartbeat("no track is seen in 90 % of the frames that hold any: no motion signal to take a heart "
+                          "rate from")
     peak, ratio, df = spectral_peak(Y, dt, band)
     if peak is None:
         raise NoHeartbeat(f"{duration:.3g} s: too short to resolve heart rates in {lo:g}-{hi:g} Hz")
@@ -406,7 +418,8 @@ def heart_rate_at(times, positions, frequency_hz: float, band=BAND_HZ) -> HeartR
                           f"{MIN_BEATS:g} are needed")
     Y, n_points = filled_tracks(t, positions)
     if n_points == 0:
-        raise NoHeartbeat("no track is seen in 90 % of the frames: no motion signal to fit a heartbeat to")
+        raise NoHeartbeat("no track is seen in 90 % of the frames that hold any: no motion signal to fit a "
+                          "heartbeat to")
     freqs, power = _power_spectrum(Y, dt)
     band_idx = (freqs >= lo) & (freqs <= hi)
     median = float(np.median(power[band_idx])) if band_idx.sum() >= 3 else float("nan")

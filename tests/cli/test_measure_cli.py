@@ -192,12 +192,54 @@ def test_missing_frame_in_one_camera_is_left_out(case):
     res = _measure(case)
     assert res.exit_code == 0, res.output
     assert "cam1" in res.stderr and "000004" in res.stderr
+    assert "no point was measured" not in res.stderr and "repeat" not in res.stderr
     here, using, before = _views_in_frame(case, 4, "cam1")
     assert using == []                                       # nothing observed in the missing image
     assert len(here) >= len(before) // 2 >= 1                # still triangulated from cam0 and cam2
     assert all(int(r["views"]) == 2 for r in here)
     _, using_next, _ = _views_in_frame(case, 5, "cam1")
     assert using_next                                        # cam1 is used again in the next instant
+
+
+def test_repeated_images_are_left_out_named_and_recorded(case):
+    """cam1's frame 4 a copy of its frame 3 (out of step), every camera's frame 7 a copy of frame 6: cam1 is left
+    out of instant 4, instant 7 is empty; warned, counted in --json and listed in the file; keep measures them."""
+    from heartcv.tracker.io import read_measurements
+
+    for cam, k in (("cam1", 4), ("cam0", 7), ("cam1", 7), ("cam2", 7)):
+        shutil.copy(case["seq"] / cam / f"{k - 1:06d}.png", case["seq"] / cam / f"{k:06d}.png")
+    res = _measure(case, "--json")
+    assert res.exit_code == 0, res.output
+    assert "1 of 10 images of camera cam0, 2 of 10 images of camera cam1, 1 of 10 images of camera cam2 repeat" \
+        in res.stderr, res.stderr
+    s = json.loads(res.stdout)
+    assert s["repeated_frames"] == "drop" and s["repeated_views"] == {"cam0": 1, "cam1": 2, "cam2": 1}
+    meta = read_measurements(case["out"] / "meas.npz").meta
+    assert meta["repeated_views"] == {"cam0": [7], "cam1": [4, 7], "cam2": [7]}
+    here, using, before = _views_in_frame(case, 4, "cam1")
+    assert using == [] and len(here) >= len(before) // 2 >= 1
+    assert _views_in_frame(case, 7, "cam0")[0] == []
+    (case["out"] / "meas.npz").unlink()
+    (case["out"] / "meas.csv").unlink()
+    kept = _measure(case, "--json", "--repeated-frames", "keep")
+    assert kept.exit_code == 0, kept.output
+    assert "repeat" not in kept.stderr and "repeated_views" not in json.loads(kept.stdout)
+    assert "repeated_views" not in read_measurements(case["out"] / "meas.npz").meta
+    assert len(_views_in_frame(case, 7, "cam0")[0]) >= 1
+
+
+def test_frames_where_nothing_was_measured_are_named(case):
+    """Frames 5-6 black in every camera (a capture glitch): no point there, and a warning naming them."""
+    import cv2
+
+    for cam in ("cam0", "cam1", "cam2"):
+        for k in (5, 6):
+            path = case["seq"] / cam / f"{k:06d}.png"
+            cv2.imwrite(str(path), np.zeros_like(cv2.imread(str(path))))
+    res = _measure(case, "--json")
+    assert res.exit_code == 0, res.output
+    assert "no point was measured in 2 of 10 frames (5-6)" in res.stderr, res.stderr
+    assert json.loads(res.stdout)["points_min"] == 0
 
 
 def test_missing_first_reference_image_starts_a_frame_later(case):
