@@ -114,7 +114,7 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
     if frames is not None and duration is not None:
         raise BadInput("--frames and --duration: give one of them")
     guard_outputs({"-o/--output": output}, {"MEASUREMENTS": measurements, "--model": model_file},
-                  files=[("-o/--output", output)])
+                  files=[("-o/--output", output, ("heartcv.parameters",))])
     meas = read_measurements(measurements)
     if duration is not None:
         frames = frames_within(meas.times, duration)

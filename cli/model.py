@@ -102,7 +102,8 @@ def _guard(model_file, output, truth_path) -> None:
     if truth_path is not None and Path(output).resolve() == Path(truth_path).resolve():
         raise BadInput(f"-o/--output and --truth name the same file ({output}); choose two paths")
     guard_outputs({"-o/--output": output, "--truth": truth_path}, {"MODEL_FILE": model_file},
-                  files=[("-o/--output", output), ("--truth", truth_path)])
+                  files=[("-o/--output", output, ("heartcv.measurements",)),
+                         ("--truth", truth_path, ("heartcv.truth",))])
 
 
 def _check_size(duration: float, substeps: int, frame_rate: float) -> None:

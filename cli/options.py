@@ -94,15 +94,16 @@ def guard_outputs(outputs: dict, inputs: dict, *, files=(), folders=()) -> None:
     ----------
     outputs, inputs : dict of {label: path or None}
         Labels are the option or argument names the messages show (``"-o/--output"``, ``"MEASUREMENTS"``).
-    files : iterable of (label, path)
-        Output files to check with :func:`check_output_file`.
+    files : iterable of (label, path) or (label, path, kinds)
+        Output files to check with :func:`check_output_file` (``kinds``: the heartcv formats the stage writes
+        there; an existing heartcv file of another format is refused).
     folders : iterable of (label, path, producer)
         Output folders that ``producer`` replaces as a whole (:func:`check_output_folder`).
     """
     refuse_overlap(outputs, inputs)
-    for label, path in files:
+    for label, path, *kinds in files:
         if path is not None:
-            check_output_file(path, label)
+            check_output_file(path, label, kinds[0] if kinds else None)
     for label, path, producer in folders:
         if path is not None:
             check_output_folder(path, producer, label)

@@ -109,7 +109,7 @@ def import_(files, fmt, units, names, image_sizes, output, as_json):
     fmt, sources = plan_import(files, fmt)
     inputs = {("FILE" if len(files) == 1 else f"FILE {i + 1}"): p for i, p in enumerate(files)}
     inputs.update({f"FILE ({p.name})": p for p in sources if p not in [Path(f) for f in files]})
-    guard_outputs({"-o/--output": out}, inputs, files=[("-o/--output", out)])
+    guard_outputs({"-o/--output": out}, inputs, files=[("-o/--output", out, ("heartcv.rig",))])
     imported = read_foreign(fmt, sources, image_sizes)
     for msg in imported.warnings:
         log.warning("%s", msg)
@@ -175,7 +175,7 @@ def rectified(image_size, size_of, packed, focal_px, hfov_deg, principal_point, 
             raise BadInput(f"--principal-point: {cx:g},{cy:g} lies outside the {w}x{h} image (-0.5 .. W-0.5, "
                            "-0.5 .. H-0.5)")
     out = _yaml_output(output)
-    guard_outputs({"-o/--output": out}, {}, files=[("-o/--output", out)])
+    guard_outputs({"-o/--output": out}, {}, files=[("-o/--output", out, ("heartcv.rig",))])
     result = rectified_rig(w, h, focal_px, baseline_m, principal_point, names)
     result = type(result)(result.cameras, {"producer": "heartcv rig rectified", "rectified": True,
                                            "focal_px": focal_px, "baseline_m": baseline_m,

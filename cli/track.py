@@ -170,7 +170,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     part = partial_path(output)
     guard_outputs({"-o/--output": output, "the partial file of -o": part},
                   {"MEASUREMENTS": measurements, "--model": model_file, "--params": params_file},
-                  files=[("-o/--output", output), ("the partial file of -o", part)])
+                  files=[("-o/--output", output, ("heartcv.estimates",)),
+                         ("the partial file of -o", part, ("heartcv.estimates",))])
     meas = read_measurements(measurements)
     m = load_model(model_file)
     fitted = read_parameters(params_file) if params_file is not None else None

@@ -41,7 +41,8 @@ import numpy as np
 
 __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
-    "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "read_text", "read_yaml",
+    "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "heartcv_format",
+    "HAND_WRITTEN_FORMATS", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
     "read_npz_meta", "check_provenance", "show",
     "write_npz", "read_csv_table", "get_matrix", "software_versions",
@@ -92,6 +93,16 @@ class InputError(ValueError):
 
 def _unwritable(path, exc: OSError) -> InputError:
     return InputError(path, f"cannot write here ({exc.strerror or exc})", "output")
+
+
+def _check_writable_parent(path, label: str) -> None:
+    """Exit 2 before any work where the nearest existing folder above ``path`` cannot be written into (the
+    output's temporary file and its rename need it)."""
+    parent = Path(path).parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if parent.is_dir() and not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(path, f"cannot write here (no permission to write into {parent})", label)
 
 
 # =====================================================================================================================
@@ -161,9 +172,10 @@ def read_manifest(folder) -> dict | None:
 def atomic_folder(path, producer: str, manifest: dict | None = None):
     """Yield a hidden temporary folder beside ``path``; only if the block succeeds is it renamed to ``path``.
 
-    The folder receives a manifest (:data:`MANIFEST_NAME`: ``producer``, ``heartcv_version`` and ``manifest``'s
-    keys). An existing ``path`` is replaced only if it is a folder whose manifest names the same ``producer``
-    (a previous run of the same stage); anything else raises :class:`InputError` before the block runs, so a
+    The folder receives a manifest (:data:`MANIFEST_NAME`: ``producer``, ``heartcv_version``, ``manifest``'s
+    keys and ``files``, every file the block wrote). An existing ``path`` is replaced only if it is a folder whose
+    manifest names the same ``producer`` (a previous run of the same stage) and that holds no file beyond those
+    its manifest lists (one a person added); anything else raises :class:`InputError` before the block runs, so a
     stage never deletes a folder it did not write. On failure the temporary folder is removed.
     """
     from . import __version__
@@ -179,6 +191,7 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
         yield tmp
         info = {"producer": producer, "heartcv_version": __version__}
         info.update(manifest or {})
+        info["files"] = sorted(q.relative_to(tmp).as_posix() for q in tmp.rglob("*") if not q.is_dir())
         (tmp / MANIFEST_NAME).write_text(json.dumps(plain(info), indent=1, sort_keys=True) + "\n", encoding="utf-8")
         os.chmod(tmp, 0o777 & ~_umask())
         old = None
@@ -242,15 +255,43 @@ def refuse_overlap(outputs: dict, inputs: dict) -> None:
 _PNG_SOFTWARE = re.compile(rb"tEXtSoftware\x00heartcv")
 
 
+# heartcv formats that people write and no stage does: such a file is never replaced by an output
+HAND_WRITTEN_FORMATS = ("heartcv.model", "heartcv.scene")
+_YAML_FORMAT = re.compile(rb"(?m)^format:\s*['\"]?(heartcv\.[A-Za-z0-9_.]+)")
+
+
+def heartcv_format(path) -> str | None:
+    """The ``format`` of an existing heartcv YAML or ``.npz`` file (``heartcv.rig``, ...); None for any other file
+    or one that cannot be read."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+    except OSError:
+        return None
+    if head.startswith(b"PK"):
+        with contextlib.suppress(InputError):
+            fmt = str(_npz_meta_only(path).get("format", ""))
+            return fmt if fmt.startswith("heartcv.") else None
+        return None
+    if path.suffix.lower() in (".yaml", ".yml"):
+        m = _YAML_FORMAT.search(head)
+        return m.group(1).decode("ascii") if m else None
+    return None
+
+
 def is_heartcv_file(path) -> bool:
     """Whether an existing file was written by heartcv (and so may be replaced by a later run of a stage).
 
-    Recognised: YAML and ``.npz`` files whose ``format`` starts with ``heartcv.``; text files (CSV, Markdown,
-    HTML, COLMAP/Kalibr exports) whose first line carries ``heartcv``; PNG files with the ``Software: heartcv``
-    text chunk and PDF files whose creator is heartcv (both as written by heartcv); empty files (a previous run
-    that was interrupted while creating it).
+    Recognised: YAML and ``.npz`` files whose ``format`` starts with ``heartcv.``, except the formats people
+    write (:data:`HAND_WRITTEN_FORMATS`: model and scene files); text files (CSV, Markdown, HTML, COLMAP/Kalibr
+    exports) whose first line carries ``heartcv``; PNG files with the ``Software: heartcv`` text chunk and PDF
+    files whose creator is heartcv (both as written by heartcv); empty files (a previous run that was interrupted
+    while creating it).
     """
     path = Path(path)
+    if heartcv_format(path) in HAND_WRITTEN_FORMATS:
+        return False
     try:
         size = path.stat().st_size
         if size == 0:
@@ -278,17 +319,28 @@ def is_heartcv_file(path) -> bool:
     return False
 
 
-def check_output_file(path, label: str = "-o/--output") -> None:
-    """Refuse an output file path that holds something heartcv did not write (:func:`is_heartcv_file`) or a
-    folder; a missing file, or one that a stage wrote before, may be (re)written."""
+def check_output_file(path, label: str = "-o/--output", kinds=None) -> None:
+    """Refuse an output file path that holds something heartcv did not write (:func:`is_heartcv_file`), a heartcv
+    file of another kind than ``kinds`` (the formats the stage writes there, e.g. ``("heartcv.rig",)``: a fit
+    does not replace a rig), or a folder; a missing file, or one that a stage of that kind wrote before, may be
+    (re)written."""
     path = Path(path)
     if path.is_dir():
         raise InputError(path, "is a folder; a file path expected", label)
-    if path.exists() and not is_heartcv_file(path):
-        raise InputError(path, "exists and was not written by heartcv; not replaced (remove it or choose another "
-                               "path)", label)
+    if path.exists():
+        fmt = heartcv_format(path)
+        if fmt in HAND_WRITTEN_FORMATS:
+            raise InputError(path, f"exists and is a {fmt} file (written by a person, not by a stage); not "
+                                   "replaced (choose another path)", label)
+        if not is_heartcv_file(path):
+            raise InputError(path, "exists and was not written by heartcv; not replaced (remove it or choose "
+                                   "another path)", label)
+        if kinds is not None and fmt is not None and fmt not in kinds:
+            raise InputError(path, f"exists and holds a {fmt} file, not a {' or '.join(kinds)} file as this output; "
+                                   "not replaced (remove it or choose another path)", label)
     if path.parent.exists() and not path.parent.is_dir():
         raise InputError(path, f"{path.parent} is not a folder", label)
+    _check_writable_parent(path, label)
 
 
 def check_output_folder(path, producer: str, label: str = "-o/--output") -> None:
@@ -298,6 +350,7 @@ def check_output_folder(path, producer: str, label: str = "-o/--output") -> None
     if not path.exists() and not path.is_symlink():
         if path.parent.exists() and not path.parent.is_dir():
             raise InputError(path, f"{path.parent} is not a folder", label)
+        _check_writable_parent(path, label)
         return
     if not path.is_dir() or path.is_symlink():
         raise InputError(path, "exists and is not a folder; not replaced", label)
@@ -306,6 +359,15 @@ def check_output_folder(path, producer: str, label: str = "-o/--output") -> None
         what = "holds no heartcv manifest" if man is None else f"was written by {man.get('producer')!r}"
         raise InputError(path, f"exists and {what}: {producer} replaces only a folder it wrote itself; remove it "
                                "or choose another path", label)
+    if isinstance(man.get("files"), list):      # folders written since the manifest lists its files
+        wrote = {str(f) for f in man["files"]} | {MANIFEST_NAME}
+        added = sorted(q.relative_to(path).as_posix() for q in path.rglob("*")
+                       if not q.is_dir() and q.relative_to(path).as_posix() not in wrote)
+        if added:
+            shown = ", ".join(added[:5]) + (f" and {len(added) - 5} more" if len(added) > 5 else "")
+            raise InputError(path, f"holds files {producer} did not write ({shown}); it would delete them on "
+                                   "replacing the folder: move them out or choose another path", label)
+    _check_writable_parent(path, label)
 
 
 # =====================================================================================================================

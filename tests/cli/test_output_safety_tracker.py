@@ -141,6 +141,52 @@ def test_an_output_file_heartcv_did_not_write_is_kept(here, stage):
     assert mine.read_text() == "my own notes"
 
 
+@pytest.mark.parametrize("stage, victim, kind", [
+    ("fit", "model.yaml", "heartcv.model"),           # a model file a person wrote: never replaced
+    ("fit", "rig.yaml", "heartcv.rig"),               # another stage's file: not replaced by a fit
+    ("track", "m.npz", "heartcv.measurements"),
+    ("model simulate", "kf.npz", "heartcv.estimates"),
+    ("model simulate", "m.npz", None),                # the same kind: replaced (a rerun)
+])
+def test_an_output_replaces_only_a_file_of_its_own_kind(here, stage, victim, kind):
+    """A heartcv file of another kind than the output (written by another stage, or a model or scene file that a
+    person wrote) is kept; one of the output's own kind is replaced, as a rerun does."""
+    _ok("rig", "rectified", "--image-size", "360x288", "--focal-px", "390", "--baseline-m", "0.0055",
+        "-o", here / "rig.yaml")
+    target = here / f"copy_{victim}"
+    shutil.copy(here / victim, target)
+    before = target.read_bytes()
+    args = {"model simulate": ["model", "simulate", here / "model.yaml", "--duration", "1", "--seed", "2"],
+            "track": ["track", here / "m.npz", "--model", here / "model.yaml"],
+            "fit": ["fit", here / "m.npz", "--model", here / "model.yaml", "--starts", "1"]}[stage]
+    res = _run(*args, "-o", target)
+    if kind is None:
+        assert res.exit_code == 0, res.output
+        assert target.read_bytes() != before
+        return
+    _refused(res, target)
+    assert kind in res.stderr and "not replaced" in res.stderr
+    assert target.read_bytes() == before
+
+
+@pytest.mark.parametrize("stage", ["fit", "track", "report"])
+def test_an_output_folder_without_write_permission_exits_2_before_any_work(here, stage, monkeypatch):
+    """(Simulated: the tests may run as root.) Before, fit and track found it only after all their work."""
+    import os
+
+    locked = here / "locked"
+    locked.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p) == locked else real(p, mode))
+    args = {"fit": ["fit", here / "m.npz", "--model", here / "model.yaml", "--starts", "1", "-o", locked / "p.yaml"],
+            "track": ["track", here / "m.npz", "--model", here / "model.yaml", "-o", locked / "kf.npz"],
+            "report": ["report", here / "kf.npz", "-o", locked / "rep"]}[stage]
+    res = _run(*args)
+    _refused(res, locked)
+    assert "cannot write here (no permission to write into" in res.stderr
+    assert "INFO" not in res.stderr and "wrote" not in res.stderr and list(locked.iterdir()) == []
+
+
 # -- output folders: report and simulate -------------------------------------------------------------------------
 def test_report_into_a_report_folder_holding_an_input_is_refused(here):
     """The old report replaced any folder holding metrics.json, with the estimate file the user kept in it."""
@@ -188,6 +234,26 @@ def test_report_replaces_only_a_folder_a_report_wrote(here):
     _refused(res, study)
     assert "exists and was written by 'heartcv simulate'" in res.stderr
     assert _snapshot(study) == before
+
+
+def test_a_report_folder_holding_a_file_a_person_added_is_kept(here):
+    """A rerun replaces its own report folder, but not one into which a person put a file (it would be deleted);
+    the manifest lists every file the run wrote."""
+    import json
+
+    rep = here / "rep"
+    _ok("report", here / "kf.npz", "-o", rep, "--resamples", "0")
+    listed = json.loads((rep / "heartcv-manifest.json").read_text())["files"]
+    assert sorted(listed) == sorted(p for p in _snapshot(rep) if p != "heartcv-manifest.json")
+    (rep / "figs").mkdir(exist_ok=True)
+    (rep / "figs" / "notes.txt").write_text("mine")
+    before = _snapshot(rep)
+    res = _run("report", here / "kf.npz", "-o", rep, "--resamples", "0")
+    _refused(res, rep)
+    assert "holds files heartcv report did not write (figs/notes.txt)" in res.stderr
+    assert _snapshot(rep) == before
+    (rep / "figs" / "notes.txt").unlink()
+    _ok("report", here / "kf.npz", "-o", rep, "--resamples", "0")
 
 
 def test_simulate_into_a_folder_it_did_not_write_is_refused(here):

@@ -159,7 +159,6 @@ def test_a_still_scene_and_a_slow_frame_are_not_repeats():
 
 def test_a_small_moving_region_never_makes_repeats():
     """Only 0.5 % of the view moves (shares below REPEAT_SHARE): detection stays off, even for exact copies."""
-    rng = np.random.default_rng(5)
     base = np.full((120, 160), 90, np.uint8)
     seq = []
     for k in range(20):

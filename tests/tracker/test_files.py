@@ -59,6 +59,22 @@ def test_atomic_path_unwritable_destination_is_an_input_error(tmp_path):
     assert blocker.read_text() == "I am a file"
 
 
+def test_an_output_in_a_folder_without_write_permission_is_refused_before_any_work(tmp_path, monkeypatch):
+    """(The tests run as any user, root included, who may write anywhere: the permission is simulated.)"""
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real = os.access
+    monkeypatch.setattr(F.os, "access", lambda p, mode: False if Path(p) == locked else real(p, mode))
+    for check in (lambda: F.check_output_file(locked / "p.yaml", "-o/--output"),
+                  lambda: F.check_output_file(locked / "new" / "deeper" / "p.yaml", "-o/--output"),
+                  lambda: F.check_output_folder(locked / "report", "heartcv report", "-o/--output")):
+        with pytest.raises(InputError, match=f"cannot write here \\(no permission to write into {locked}\\)") as exc:
+            check()
+        assert exc.value.field == "-o/--output"
+    F.check_output_file(tmp_path / "p.yaml")                    # elsewhere: fine
+    F.check_output_folder(tmp_path / "new" / "report", "heartcv report")
+
+
 def test_atomic_folder_replaces_only_its_own_folder(tmp_path):
     out = tmp_path / "report"
     with F.atomic_folder(out, "heartcv report", {"inputs": 2}) as tmp:
