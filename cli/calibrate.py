@@ -110,6 +110,7 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
             import numpy as np
 
             times = np.concatenate([times, np.full((len(names), len(view_names) - times.shape[1]), np.nan)], 1)
+    _check_given_sizes(intrinsics_file, names, given, sizes)
     cal = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views,
                      target_file, given=given, hold=held, times=times, folds=folds)
     rig = cal.rig
@@ -177,6 +178,22 @@ def _given_intrinsics(path, hold, names):
             cam = rig[n]
             log.info("%s: intrinsics from %s (fx %.1f px)%s", n, path, cam.K[0, 0], ", held" if held[i] else "")
     return given, held
+
+
+def _check_given_sizes(path, names, given, sizes):
+    """Exit 2 where --intrinsics gives a camera intrinsics of another image size than its views' (pixels of other
+    images: a focal length and principal point off by the ratio)."""
+    if path is None:
+        return
+    from heartcv.io import read_rig
+
+    rig = read_rig(path)
+    for n, g, size in zip(names, given, sizes, strict=True):
+        if g is not None and size is not None and tuple(rig[n].size) != tuple(size):
+            raise BadInput(f"--intrinsics: {path}: camera {n} is {rig[n].width}x{rig[n].height} px, but its views "
+                           f"in FOLDER are {size[0]}x{size[1]}: these intrinsics are of other images (another "
+                           "resolution or crop); calibrate without --intrinsics or give the intrinsics of these "
+                           "images")
 
 
 def _check_videos(cameras):

@@ -80,7 +80,7 @@ MAX_STARTS = 1000
               help="An estimated input's rigid motion as a smooth displacement field of this degree along the "
                    "observed surface [default: 1, an affine field: translation, in-plane rotation, stretch and "
                    "shear, and tilt]; 0: a translation. With a field its increments are a vector autoregression, "
-                   "its order and ridge chosen by predicting the last 30 %% of the fitted frames "
+                   "its order and ridge chosen by predicting the last 30 % of the fitted frames "
                    "(docs/model.md 17).")
 @click.option("--patch", "patch_mode", type=click.Choice(("auto", "model", "observed")), default="auto",
               show_default=True,
@@ -231,6 +231,12 @@ def _input_mode(mode, meas, m, measurements) -> bool:
     """Whether the input is estimated (``--input``); BadInput for a model without a pressure to estimate or a
     recorded input that is missing."""
     has = "pressure" in m.input_names and "pressure" in meas.input_names
+    if mode == "recorded" and not has and "pressure" in m.input_names:
+        from heartcv.tracker.files import InputError
+
+        raise InputError(measurements, "--input recorded: the measurement file has no pressure column (its inputs: "
+                                       f"{', '.join(meas.input_names) or 'none'}); --input estimate (or auto) "
+                                       "estimates it from the tracks", "inputs")
     if mode == "recorded" or (mode == "auto" and (has or "pressure" not in m.input_names)):
         return False
     if "pressure" not in m.input_names:
@@ -319,6 +325,12 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                           "show a heartbeat, give its rate with --heart-rate-hz)") from None
     except NoHeartbeat as exc:
         raise StageFailed(f"no heart rate in the first {K} frames: {exc}; nothing written") from None
+    if hr.left_out:
+        ids = ", ".join(str(meas.point_ids[p]) for p in hr.left_out)
+        log.warning("the tracks show a heartbeat, or another heart rate, only without track%s %s, which carr%s the "
+                    "largest share of their motion (a stereo match that slipped for a while?): the heart rate is the "
+                    "other tracks' (%s still fitted)", "s" if len(hr.left_out) > 1 else "", ids,
+                    "y" if len(hr.left_out) > 1 else "ies", "they are" if len(hr.left_out) > 1 else "the track is")
     if heart_rate_hz is None:
         log.info("heart rate %.4g ± %.2g Hz (%.1f bpm) from the tracks' spectrum: %.1f beats, peak %.0fx the band's "
                  "median, %.0fx the power between its harmonics and %.2gx its surroundings", hr.frequency_hz,
@@ -384,7 +396,8 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
                              "peak_prominence": hr.prominence if math.isfinite(hr.prominence) else None,
                              "peak_background_ratio": hr.background_ratio if math.isfinite(hr.background_ratio)
                              else None,
-                             "beats": hr.beats, "points": hr.points, "band_hz": [float(band[0]), float(band[1])]},
+                             "beats": hr.beats, "points": hr.points, "band_hz": [float(band[0]), float(band[1])]}
+                 | ({"left_out_tracks": [int(meas.point_ids[p]) for p in hr.left_out]} if hr.left_out else {}),
                  respiration=dict(resp.to_dict(), band_hz=[float(resp_band[0]), float(resp_band[1])]),
                  amplitudes_pa=[float(v) for v in alpha], amplitudes_std_pa=[float(v) for v in alpha_std],
                  held_fixed=["E"] if fit_model is not m else [], fit_frames=K, rigid_ar_order=block.ar_order,

@@ -44,7 +44,7 @@ LEVEL = 0.95  # NIS bands
                    "the tracked points); repeatable.")
 @click.option("--resamples", type=Int(0, 1_000_000), default=2000, show_default=True,
               help="Bootstrap resamples of the 95 % intervals of the error ratios (to hold, GE / KF): circular "
-                   "blocks of frames, drawn with --seed; 0: no intervals.")
+                   "blocks of frames, drawn with --seed; 0: no intervals, else at least 100.")
 @seed_opt
 @json_opt
 def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, resamples, seed, as_json):

@@ -847,6 +847,11 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras
     if len(set(counts)) > 1:
         raise HeartcvIOError(folder, "cameras with different frame counts: " + ", ".join(
             f"{n} {c}" for n, c in zip(names, counts)))
+    stated = [(n, r) for n, r in zip(names, rates) if r > 0]
+    if stated and max(r for _, r in stated) > 1.01 * min(r for _, r in stated):
+        raise HeartcvIOError(folder, "cameras' videos at different frame rates (" + ", ".join(
+            f"{n} {r:g} fps" for n, r in stated) + f") with {counts[0]} frames each: their frame k are not one instant "
+            "(give each camera's video at one rate, or image folders with timestamps.csv)")
     fps = rates[0] if rates and rates[0] > 0 and all(abs(r - rates[0]) < 1e-6 * rates[0] for r in rates) else None
     return FrameSource(folder, "video", tuple(names), tuple(f"frame{k:06d}" for k in range(counts[0])),
                        tuple((e[1][0],) for e in entries), fps, tuple(infos))

@@ -495,9 +495,12 @@ def _array(v, path, field) -> np.ndarray:
 
 def _dist(v, path, field) -> np.ndarray:
     d = _array(v, path, field).reshape(-1)
-    if d.size not in DIST_SIZES or not np.isfinite(d).all():
+    if d.size not in DIST_SIZES:
         raise InputError(path, f"{d.size} distortion coefficients; one of {DIST_SIZES[1:]} (OpenCV order k1 k2 p1 "
                                "p2 [k3 [k4 k5 k6 ...]]) expected", field)
+    if not np.isfinite(d).all():
+        raise InputError(path, f"finite distortion coefficients expected, got {int((~np.isfinite(d)).sum())} NaN or "
+                               "infinite", field)
     return d
 
 
@@ -670,8 +673,11 @@ def _fs_seq(node, path, key) -> np.ndarray:
 
 def _opencv_matrix(f, key, path, shape) -> np.ndarray:
     a = _array(f[key], path, key)
-    if a.shape != shape or not np.isfinite(a).all():
+    if a.shape != shape:
         raise InputError(path, f"a finite {shape[0]}x{shape[1]} matrix expected, got shape {a.shape}", key)
+    if not np.isfinite(a).all():
+        raise InputError(path, f"a finite {shape[0]}x{shape[1]} matrix expected, got "
+                               f"{int((~np.isfinite(a)).sum())} NaN or infinite entries", key)
     return a
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 __all__ = ["NoHeartbeat", "HeartRate", "estimate_heart_rate", "harmonic_basis", "InputBlock", "HARMONICS",
            "DRIFT_PER_SQRT_S", "PEAK_RATIO", "PEAK_PROMINENCE", "BAND_HZ", "seen_share", "filled_tracks",
-           "spectral_peak",
+           "dominant_track", "MAX_LEFT_OUT", "spectral_peak",
            "harmonic_background_ratio", "periodic_peak", "harmonics_below_nyquist",
            "peak_prominence", "NotProminent", "heart_rate_at",
            "fit_harmonics", "input_block_from_fit", "extend_observation",
@@ -122,6 +122,8 @@ class HeartRate:
                              :data:`PEAK_PROMINENCE`)
     background_ratio : float :func:`harmonic_background_ratio` at ``peak_hz``: the peak's power over the median
                              power between its harmonics up to the Nyquist frequency
+    left_out : tuple of int  the tracks (indices along the positions' second axis) left out because the tracks
+                             showed a heartbeat, or another rate, only without them (:func:`estimate_heart_rate`)
     """
 
     frequency_hz: float
@@ -132,6 +134,7 @@ class HeartRate:
     std_hz: float = float("nan")
     prominence: float = float("nan")
     background_ratio: float = float("nan")
+    left_out: tuple = ()
 
 
 def seen_share(positions) -> np.ndarray:
@@ -323,8 +326,68 @@ def _harmonic_rss(t, s, f, harmonics):
     return float(np.sum(r * r))
 
 
+def dominant_track(positions) -> int | None:
+    """The track (index along the second axis of positions (K, P, 3), NaN where unseen) that carries the largest
+    share of the detrended motion's variance among the tracks :func:`filled_tracks` uses; None with fewer than 3
+    of them (leaving one out would leave too little to judge by)."""
+    y = np.asarray(positions, float)
+    use = np.flatnonzero(seen_share(y) >= 0.9)
+    if use.size < 3:
+        return None
+    Y, _ = filled_tracks(np.arange(y.shape[0]), y[:, use])
+    power = (Y.reshape(Y.shape[0], use.size, 3) ** 2).sum(axis=(0, 2))
+    return int(use[int(np.argmax(power))])
+
+
+# At most this many tracks are left out of a heart rate, one at a time (:func:`estimate_heart_rate`)
+MAX_LEFT_OUT = 3
+
+
+def _disagree(a: HeartRate, b: HeartRate) -> bool:
+    """Whether two heart rates of nearly the same tracks differ by more than 3 standard errors of the more precise
+    one, combined as for two independent estimates (never where one is undefined). (A track that pulls the rate
+    also widens its standard error: combining the two errors would let it pass.)"""
+    tol = 3.0 * math.sqrt(2.0) * min(a.std_hz, b.std_hz)
+    return bool(math.isfinite(tol) and abs(a.frequency_hz - b.frequency_hz) > tol)
+
+
 def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_HZ, *,
                         prominent: bool = False) -> HeartRate:
+    """The heart rate of tracked points (K, P, 3 with NaN where unseen) (:func:`_heart_rate`), which no single
+    track decides: the rate is taken again without the track that carries the largest share of the tracks' motion
+    (:func:`dominant_track`); where the tracks showed no heartbeat (:class:`NoHeartbeat`, :class:`NotProminent`)
+    but the others do, or where the others' rate differs significantly (:func:`_disagree`), theirs is taken
+    and the next such track is tried, at most :data:`MAX_LEFT_OUT` in all (``left_out`` names them). A track whose
+    stereo match slipped for a while (its depth jumping by millimetres) can carry several times its share: it
+    flattens the spectral peak or pulls the dominant motion, and so the rate. Where leaving a track out changes
+    nothing significant, the result is that of all the tracks."""
+    y = np.asarray(positions, float)
+    try:
+        hr, failure = _heart_rate(times, y, harmonics, band, prominent=prominent), None
+    except NoHeartbeat as exc:
+        hr, failure = None, exc
+    left = []
+    for _ in range(MAX_LEFT_OUT):
+        p = dominant_track(y)
+        if p is None:
+            break
+        without = y.copy()
+        without[:, p] = np.nan
+        try:
+            other = _heart_rate(times, without, harmonics, band, prominent=prominent)
+        except NoHeartbeat:
+            break
+        if hr is not None and not _disagree(hr, other):
+            break
+        y, hr = without, other
+        left.append(p)
+    if hr is None:
+        raise failure
+    return replace(hr, left_out=tuple(left))
+
+
+def _heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_HZ, *,
+                prominent: bool = False) -> HeartRate:
     """The heart rate of tracked points (K, P, 3 with NaN where unseen): spectral peak, then refined.
 
     The peak of the summed Hann-windowed power spectrum of every point's detrended coordinates in ``band``
@@ -373,7 +436,7 @@ def estimate_heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_
                           f"harmonics with a prominence above {PEAK_PROMINENCE:g})")
     if prominent and prominence < PEAK_PROMINENCE:
         raise NotProminent(f"no periodic motion: the tracks' largest spectral peak in {lo:g}-{hi:g} Hz, at "
-                           f"{peak:.3g} Hz, stands only {prominence:.2g} times above their spectrum at half and one "
+                           f"{peak:.3g} Hz, stands only {prominence:.3g} times above their spectrum at half and one "
                            f"and a half times its frequency (a heartbeat: {PEAK_PROMINENCE:g} times and more): the "
                            f"falling spectrum of drift, not a heartbeat")
     # the dominant motion signal: first principal component of the tracks

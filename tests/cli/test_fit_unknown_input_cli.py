@@ -371,6 +371,7 @@ def test_fit_input_options_are_checked(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "p.yaml"),
                                     "--input", "recorded"])
     assert res.exit_code == 2 and "pressure" in res.output
+    assert f"{blind_file}: inputs: --input recorded: the measurement file has no pressure column" in res.stderr
     res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "p.yaml"),
                                     "--patch", "observed"])
     assert res.exit_code == 2 and "patch frame" in res.output

@@ -174,6 +174,18 @@ def test_calibrate_rerun_replaces_its_own_outputs_and_logs_at_info(tmp_path, syn
     assert sorted(p.name for p in out.parent.iterdir()) == ["rig.yaml", "rig_colmap"]
     assert sorted(p.name for p in (out.parent / "rig_colmap").iterdir()) == ["cameras.txt", "heartcv-manifest.json",
                                                                             "rigs.txt"]
+    # intrinsics of other images (half the resolution): exit 2 naming the file, the camera and both sizes
+    rig = read_rig(given)
+    halved = tmp_path / "halved.yaml"
+    write_rig(halved, Rig(tuple(Camera(c.name, c.width // 2, c.height // 2, c.K * [[0.5], [0.5], [1]], c.dist,
+                                       c.cam_from_rig) for c in rig.cameras)))
+    c0 = rig.cameras[0]
+    res = _run("calibrate", folder, "--target", syn_target, "-o", tmp_path / "other.yaml", "--dist", "5",
+               "--intrinsics", halved, "--hold", "all")
+    _refused(res, halved)
+    assert (f"camera {c0.name} is {c0.width // 2}x{c0.height // 2} px, but its views in FOLDER are "
+            f"{c0.width}x{c0.height}") in res.stderr
+    assert not (tmp_path / "other.yaml").exists()
 
 
 def test_calibrate_unwritable_output_exit_2(tmp_path, syn_target):  # noqa: F811

@@ -436,6 +436,25 @@ def test_opencv_ros_camera_info(tmp_path):
     with pytest.raises(InputError) as err:
         _import([path])
     assert err.value.field == "distortion_model"
+    path.write_text(path.read_text().replace("equidistant", "plumb_bob").replace("539.7", ".nan"))
+    with pytest.raises(InputError, match="finite numbers expected") as err:
+        _import([path])
+    assert err.value.field == "camera_matrix.data"
+
+
+@needs_opencv_data
+def test_opencv_filestorage_nan_entries_are_named(tmp_path):
+    """NaN or infinite entries of an OpenCV FileStorage matrix are named as such (the message said 'got shape
+    (3, 3)' for a NaN focal length, and '5 distortion coefficients; one of ...' for an infinite k2)."""
+    text = (OPENCV / "left_intrinsics.yml").read_text()
+    bad = _write(tmp_path / "k.yml", text.replace("5.3591573396163199e+02, 0.,", ".nan, 0.,", 1))
+    with pytest.raises(InputError, match="a finite 3x3 matrix expected, got 1 NaN or infinite entries") as err:
+        _import([bad], image_sizes=[(640, 480)])
+    assert err.value.field == "camera_matrix"
+    bad = _write(tmp_path / "d.yml", text.replace("-3.8588898922304653e-02", ".Inf", 1))
+    with pytest.raises(InputError, match="finite distortion coefficients expected, got 1 NaN or infinite") as err:
+        _import([bad], image_sizes=[(640, 480)])
+    assert err.value.field == "distortion_coefficients"
 
 
 # ---------------------------------------------------------------------------------------------------------------------

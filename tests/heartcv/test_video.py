@@ -227,6 +227,16 @@ def test_frame_source_refuses_a_bad_video_before_reading(tmp_path):
     write_video(seq / "cam1.avi", "MJPG", n=N_FRAMES - 3)
     with pytest.raises(InputError, match=f"cameras with different frame counts: cam0 {N_FRAMES}, cam1 {N_FRAMES - 3}"):
         open_frame_source(seq)
+    # as many frames at twice the rate: frame k is not one instant in both
+    import cv2
+
+    w = cv2.VideoWriter(str(seq / "cam1.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 2 * FPS, SIZE)
+    for k in range(N_FRAMES):
+        w.write(np.full((SIZE[1], SIZE[0], 3), 10 * k, np.uint8))
+    w.release()
+    with pytest.raises(InputError, match=f"cameras' videos at different frame rates \\(cam0 {FPS:g} fps, cam1 "
+                                         f"{2 * FPS:g} fps\\) with {N_FRAMES} frames each"):
+        open_frame_source(seq)
 
 
 def test_frame_reader_checks_an_unchecked_source(tmp_path):
