@@ -121,12 +121,16 @@ def test_end_to_end(run):
     assert doc["inputs_hash"]["measurements"] == read_estimates(run / "kf.npz").meta["inputs_hash"]["measurements"]
     assert meas.n_frames == 31
 
-    # a second report replaces the folder as a whole
+    # a second report replaces the folder as a whole, but not a file a person put there
     (out / "stale.txt").write_text("x")
+    res = _report([run / "kf.npz", "-o", out])
+    assert res.exit_code == 2 and "holds files heartcv report did not write (stale.txt)" in res.output
+    assert (out / "stale.txt").read_text() == "x" and (out / "truth_error.png").exists()
+    (out / "stale.txt").unlink()
     res = _report([run / "kf.npz", "-o", out])
     assert res.exit_code == 0, res.output
     doc = json.loads((out / "metrics.json").read_text())
-    assert not (out / "stale.txt").exists() and not (out / "truth_error.png").exists()
+    assert not (out / "truth_error.png").exists()
     assert doc["measurement_noise_m"] is None and doc["estimators"]["kf"]["truth_error_mean_m"] is None
     assert doc["estimators"]["kf"]["prediction_truth_error_mean_m"] is None
     assert doc["estimators"]["kf"]["measurement_truth_error_mean_m"] is None

@@ -213,14 +213,20 @@ def test_all_runs_diverged_exits_1_and_writes_nothing(tmp_path, monkeypatch):
 
 def test_kf_only_study_without_estimated_parameters_replaces_an_old_study(study, tmp_path):
     """A model estimating nothing runs the KF alone (NIS only); a folder that heartcv simulate wrote is replaced
-    as a whole (its figures of parameters no longer estimated, and anything added to it, are gone)."""
+    as a whole (its figures of parameters no longer estimated are gone); not while it holds a file a person added
+    (the replacement would delete it)."""
     import shutil
 
     out = tmp_path / "study"
     shutil.copytree(study[0], out)
     (out / "notes.txt").write_text("added to the old study")
-    res = _invoke(["simulate", _model(tmp_path, _no_estimates), "--runs", "2", "--steps", "4",
-                   "--estimators", "kf", "--workers", "1", "-o", str(out), "--json"])
+    args = ["simulate", _model(tmp_path, _no_estimates), "--runs", "2", "--steps", "4", "--estimators", "kf",
+            "--workers", "1", "-o", str(out), "--json"]
+    res = _invoke(args)
+    assert res.exit_code == 2 and "holds files heartcv simulate did not write (notes.txt)" in res.stderr
+    assert (out / "notes.txt").read_text() == "added to the old study"
+    (out / "notes.txt").unlink()
+    res = _invoke(args)
     assert res.exit_code == 0, res.output
     js = json.loads(res.stdout)
     assert js["estimated"] == [] and list(js["estimators"]) == ["kf"]
