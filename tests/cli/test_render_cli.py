@@ -168,6 +168,9 @@ def test_output_folder_is_replaced_only_when_complete(runner, tmp_path, model_fi
     out = tmp_path / "seq"
     _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "2", "--json"]))
     (out / "note.txt").write_text("added after the first render")
+    res = runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "3", "--workers", "1"])
+    assert res.exit_code == 2 and "holds files heartcv render did not write (note.txt)" in res.stderr
+    (out / "note.txt").unlink()      # a file added to the folder is refused before any work, then taken out
     before = _listing(out)
 
     import heartcv.render.sequence as seq
@@ -186,7 +189,7 @@ def test_output_folder_is_replaced_only_when_complete(runner, tmp_path, model_fi
     assert _listing(out) == before  # the previous folder is untouched
     monkeypatch.setattr(seq, "render_frame", real)
     _json(runner.invoke(main, ["render", "sequence", scene, "-o", str(out), "--frames", "1", "--json"]))
-    assert not (out / "note.txt").exists() and sorted(p.name for p in (out / "cam0").iterdir()) == ["000000.png"]
+    assert sorted(p.name for p in (out / "cam0").iterdir()) == ["000000.png"]
 
 
 @pytest.mark.parametrize("cmd", ["sequence", "calibration"])
