@@ -207,7 +207,8 @@ def inputs_at_frames(columns: dict, times) -> tuple[tuple, tuple, np.ndarray]:
     ------
     InputError
         No ``time_s`` column, fewer than two or not strictly increasing times, times that do not cover the
-        frames (half a sample of slack at either end), a column with non-finite values. The field names the
+        frames (half a sample of slack at either end), a column with non-finite values, a pressure column without
+        a known unit suffix (``pressure``, ``pressure_psi``: it would be taken as pascals). The field names the
         column; no file.
     """
     times = np.asarray(times, float)
@@ -227,6 +228,9 @@ def inputs_at_frames(columns: dict, times) -> tuple[tuple, tuple, np.ndarray]:
         if not np.isfinite(v).all():
             raise InputError(None, "non-finite values", f"column {name!r}")
         base, unit, factor = split_unit(name)
+        if not unit and base.lower().startswith("pressure"):
+            raise InputError(None, "a pressure column needs its unit in its name: pressure_mmhg, pressure_kpa or "
+                                   "pressure_pa (without one it would be read as pascals)", f"column {name!r}")
         names.append(base)
         units.append(unit)
         vals.append(np.interp(times, t, v) * factor)

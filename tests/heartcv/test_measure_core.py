@@ -274,6 +274,12 @@ def test_inputs_at_frames_interpolates_in_si_units():
     ({"time_s": np.array([0.0])}, "time_s: at least two finite, strictly increasing values expected"),
     ({"time_s": np.array([0.0, 0.1])}, "time_s: the inputs cover 0..0.1 s, the frames 0..1 s"),
     ({"time_s": np.array([0.0, 1.0]), "p_pa": np.array([1.0, np.nan])}, "column 'p_pa': non-finite values"),
+    ({"time_s": np.array([0.0, 1.0]), "pressure": np.array([80.0, 120.0])},
+     "column 'pressure': a pressure column needs its unit in its name: pressure_mmhg, pressure_kpa or pressure_pa "
+     "(without one it would be read as pascals)"),
+    ({"time_s": np.array([0.0, 1.0]), "Pressure_psi": np.array([1.5, 2.3])},
+     "column 'Pressure_psi': a pressure column needs its unit in its name: pressure_mmhg, pressure_kpa or "
+     "pressure_pa (without one it would be read as pascals)"),
 ])
 def test_inputs_at_frames_refuses(cols, message):
     from heartcv.measure_data import inputs_at_frames
