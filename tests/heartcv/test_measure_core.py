@@ -210,6 +210,44 @@ def test_measure_sequence_skips_instants_with_fewer_than_two_images(scene, frame
     assert r.seen[5].sum() == r.seen[4].sum() and (r.views[5][r.seen[5]] == 2).all()
 
 
+def _run_repeats(scene, frames, **kw):
+    from heartcv.measure import measure_sequence
+
+    return measure_sequence(_stream(frames), scene.cameras, MeasureOptions(max_points=40, min_distance_px=10),
+                            roi=scene.cap_mask(0, 0, 0.02), **kw)
+
+
+def test_a_repeated_instant_is_empty_and_a_camera_out_of_step_is_left_out(scene, frames):
+    """Images that repeat their camera's previous one (heartcv.measure.RepeatedViews) are left out as missing;
+    kept (drop_repeats=False), the repeated instant says the surface stood still."""
+    seq = [list(f) for f in frames]
+    seq[4] = list(seq[3])                                  # every camera repeats frame 3
+    seq[6][1] = seq[5][1]                                  # camera 1 alone repeats frame 5
+    run = _run_repeats(scene, seq)
+    assert run.repeated == ((4, 0), (4, 1), (4, 2), (6, 1))
+    assert run.skipped == [4]
+    r = run.result
+    assert not r.seen[4].any()
+    assert any("frame 4: fewer than two readable images (views repeating their previous image left out" in p
+               for p in r.problems)
+    assert r.seen[6].sum() >= r.seen[5].sum() // 2 >= 1
+    assert (r.views[6][r.seen[6]] == 2).all() and np.isnan(r.uv[6][r.seen[6]][:, 1]).all()
+    kept = _run_repeats(scene, seq, drop_repeats=False)
+    assert kept.repeated == () and kept.skipped == [] and kept.result.seen[4].sum() >= 1
+    # kept, the repeated instant says the surface stood still for a frame (it moves about 1 mm a frame)
+    k = kept.result
+    stood = np.linalg.norm(k.positions[4] - k.positions[3], axis=1)[k.seen[3] & k.seen[4]]
+    moved = np.linalg.norm(k.positions[3] - k.positions[2], axis=1)[k.seen[2] & k.seen[3]]
+    assert np.median(stood) < 0.05 * np.median(moved)
+
+
+def test_moving_frames_are_not_repeats(scene, frames):
+    run = _run_repeats(scene, frames)
+    plain = _run_repeats(scene, frames, drop_repeats=False)
+    assert run.repeated == () and run.skipped == []
+    np.testing.assert_array_equal(run.result.positions, plain.result.positions)
+
+
 def test_measure_sequence_failures(scene, frames):
     from heartcv.measure import MeasureFailed, measure_sequence
     from heartcv.tracker.files import InputError

@@ -2,7 +2,8 @@
 a frame-rate conversion or a capture that froze delivers the same exposure twice; measured as a frame of its own
 it says the surface stood still for a frame and then moved twice as far. The changed share against closed forms,
 the repeats found among moving frames exactly (copied, and copied with re-encoding noise), never in a still scene or
-a slow frame; the synthetic trinocular sequence with a repeated instant and a camera out of step."""
+a slow frame. (The synthetic trinocular sequence with a repeated instant and a camera out of step:
+test_measure_core.py.)"""
 
 import numpy as np
 import pytest
@@ -11,14 +12,10 @@ from heartcv.measure import (
     REPEAT_LEVEL,
     REPEAT_SHARE,
     REPEAT_UNCHANGED,
-    MeasureOptions,
     RepeatedViews,
     changed_share,
-    measure_sequence,
     unchanged_share,
 )
-
-from .synthetic_scene import translating_scene
 
 
 def _texture(rng, shape=(120, 160)):
@@ -186,57 +183,6 @@ def test_views_are_judged_each_on_its_own_and_a_missing_image_keeps_the_previous
         got.append(rv(images))
     assert got == [[], [], [], [], [], [1], [], [], [], [0], [], []]
     assert len(rv.shares[0]) == 10 and len(rv.shares[1]) == 11
-
-
-# -- measure_sequence ---------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def scene():
-    return translating_scene(8, radius_m=1.0)
-
-
-@pytest.fixture(scope="module")
-def frames(scene):
-    rng = np.random.default_rng(2024)
-    return [scene.render_frame(k, noise=2.0, rng=rng) for k in range(scene.n_frames)]
-
-
-def _stream(frames):
-    for k, images in enumerate(frames):
-        yield k, list(images), []
-
-
-def _run(scene, frames, **kw):
-    return measure_sequence(_stream(frames), scene.cameras, MeasureOptions(max_points=40, min_distance_px=10),
-                            roi=scene.cap_mask(0, 0, 0.02), **kw)
-
-
-def test_a_repeated_instant_is_empty_and_a_camera_out_of_step_is_left_out(scene, frames):
-    seq = [list(f) for f in frames]
-    seq[4] = list(seq[3])                                  # every camera repeats frame 3
-    seq[6][1] = seq[5][1]                                  # camera 1 alone repeats frame 5
-    run = _run(scene, seq)
-    assert run.repeated == ((4, 0), (4, 1), (4, 2), (6, 1))
-    assert run.skipped == [4]
-    r = run.result
-    assert not r.seen[4].any()
-    assert any("frame 4: fewer than two readable images (views repeating their previous image left out" in p
-               for p in r.problems)
-    assert r.seen[6].sum() >= r.seen[5].sum() // 2 >= 1
-    assert (r.views[6][r.seen[6]] == 2).all() and np.isnan(r.uv[6][r.seen[6]][:, 1]).all()
-    kept = _run(scene, seq, drop_repeats=False)
-    assert kept.repeated == () and kept.skipped == [] and kept.result.seen[4].sum() >= 1
-    # kept, the repeated instant says the surface stood still for a frame (it moves about 1 mm a frame)
-    k = kept.result
-    stood = np.linalg.norm(k.positions[4] - k.positions[3], axis=1)[k.seen[3] & k.seen[4]]
-    moved = np.linalg.norm(k.positions[3] - k.positions[2], axis=1)[k.seen[2] & k.seen[3]]
-    assert np.median(stood) < 0.05 * np.median(moved)
-
-
-def test_moving_frames_are_untouched(scene, frames):
-    run = _run(scene, frames)
-    plain = _run(scene, frames, drop_repeats=False)
-    assert run.repeated == () and run.skipped == []
-    np.testing.assert_array_equal(run.result.positions, plain.result.positions)
 
 
 def test_frame_spans_as_runs():
