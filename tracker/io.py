@@ -427,6 +427,9 @@ def parameters_from_dict(d, path="<parameters>"):
         a = get_matrix(v, (M, M), path, field_name, allow_none=True)
         if a is not None and np.abs(a - a.T).max(initial=0) > 1e-9 * np.abs(a).max(initial=0):
             raise bad(field_name, "not symmetric")
+        if a is not None and M and np.isfinite(a).all() and np.linalg.eigvalsh(a).min() < -1e-9 * max(
+                np.abs(a).max(), np.finfo(float).tiny):
+            raise bad(field_name, "not positive semi-definite (a negative variance)")
         return a
 
     theta = per_name("theta", NAMES)
@@ -434,6 +437,11 @@ def parameters_from_dict(d, path="<parameters>"):
             and np.isfinite(theta).all()):
         raise bad("theta", f"outside the physical range (rho, E > 0; alpha >= 0; 0 < nu < 0.5): {theta.tolist()}")
     theta_std = per_name("theta_std", NAMES, required=False)
+    if not (theta_std >= 0).all():            # NaN: not determined, as the fit writes it
+        bad_std = [n for n, v in zip(NAMES, theta_std, strict=True) if v < 0]
+        if bad_std:
+            raise bad(f"theta_std.{bad_std[0]}", f"a standard deviation of at least 0 expected, got "
+                                                 f"{theta_std[NAMES.index(bad_std[0])]}")
     est = d.get("estimated", [])
     if not isinstance(est, list) or any(n not in NAMES for n in est) or len(set(est)) != len(est):
         raise bad("estimated", f"a list of distinct names from {list(NAMES)} expected, got {est!r}")

@@ -1,10 +1,12 @@
 """CLI: heartcv fit and heartcv track --params (CliRunner, exit codes, artifacts read back)."""
 
 import json
+from pathlib import Path
 
 from click.testing import CliRunner
 import numpy as np
 import pytest
+import yaml
 
 from heartcv.cli.main import main
 from heartcv.tracker.io import read_estimates, read_measurements, read_parameters, write_measurements
@@ -145,6 +147,20 @@ def test_track_params_errors(files, params, tmp_path):
     assert f"Error: {out}: theta.E: E = 5e+08 lies outside its bounds [" in r.stderr
     assert "of the model file (estimation.bounds.E)" in r.stderr
     assert not (tmp_path / "e.npz").exists()
+    # a negative standard deviation or variance (before 2026-11-29 tracked as given)
+    text = Path(params).read_text()
+    for field, edit, message in [
+            ("theta_std.nu", lambda d: d["theta_std"].update(nu=-0.03),
+             "a standard deviation of at least 0 expected, got -0.03"),
+            ("covariance.theta", lambda d: d["covariance"]["theta"][0].__setitem__(
+                0, -abs(d["covariance"]["theta"][0][0])),
+             "not positive semi-definite (a negative variance)")]:
+        d = yaml.safe_load(text)
+        edit(d)
+        out.write_text(yaml.safe_dump(d))
+        r = runner.invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(out), "-o",
+                                 str(tmp_path / "e.npz")])
+        assert r.exit_code == 2 and f"Error: {out}: {field}: {message}" in r.stderr, r.output
 
 
 # -- rig-frame files: registration ---------------------------------------------------------------------------
