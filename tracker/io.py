@@ -511,6 +511,8 @@ def parameters_from_dict(d, path="<parameters>"):
             opt("observations", int, 0), tuple(starts), tuple(at_bound), reg, meta, covariance_kind=kind,
             estimated_input=_estimated_input(d.get("estimated_input"), path),
         )
+    except InputError:         # a field's own check, already naming the file and the field
+        raise
     except ValueError as exc:  # FitResult's own checks of the values it is given (validation, not computation)
         raise InputError(path, str(exc)) from None
 
@@ -524,8 +526,11 @@ def _estimated_input(entry, path):
 
     try:
         InputBlock.from_dict(entry)
-    except ValueError as exc:
-        raise InputError(path, str(exc), "estimated_input") from None
+    except (ValueError, TypeError) as exc:
+        text = str(exc)
+        if "inhomogeneous" in text or "setting an array element" in text:   # numpy's words for ragged lists
+            text = "a list of numbers has the wrong length or holds a list where a number belongs"
+        raise InputError(path, text, "estimated_input") from None
     return entry
 
 

@@ -154,13 +154,15 @@ def test_track_params_errors(files, params, tmp_path):
              "a standard deviation of at least 0 expected, got -0.03"),
             ("covariance.theta", lambda d: d["covariance"]["theta"][0].__setitem__(
                 0, -abs(d["covariance"]["theta"][0][0])),
-             "not positive semi-definite (a negative variance)")]:
+             "not positive semi-definite (a negative variance)"),
+            ("frames", lambda d: d.update(frames="many"), "an integer expected, got 'many'")]:
         d = yaml.safe_load(text)
         edit(d)
         out.write_text(yaml.safe_dump(d))
         r = runner.invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(out), "-o",
                                  str(tmp_path / "e.npz")])
         assert r.exit_code == 2 and f"Error: {out}: {field}: {message}" in r.stderr, r.output
+        assert r.stderr.count(str(out)) == 1          # the file named once (it was twice for some fields)
 
 
 # -- rig-frame files: registration ---------------------------------------------------------------------------
