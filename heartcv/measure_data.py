@@ -339,14 +339,22 @@ def truth_statistics(res, truth: dict, ref: int, camera) -> dict:
 #: Cameras of one rig farther apart than this (m) mean a rig file not in metres (docs/cli.md, measure): heartcv
 #: watches a surface within reach of surgical instruments; a stereo endoscope's baseline is about 0.005 m.
 MAX_BASELINE_M = 1.0
+#: Cameras of one rig all closer than this (m) have no baseline to triangulate from (a micrometre: far below any
+#: stereo endoscope's 4-6 mm).
+MIN_BASELINE_M = 1e-6
 
 
 def check_rig_scale(cameras, source) -> None:
     """Raise :class:`InputError` (field ``cam_from_rig``) when two cameras are farther apart than
-    :data:`MAX_BASELINE_M`: the rig was most likely written in millimetres."""
+    :data:`MAX_BASELINE_M` (the rig was most likely written in millimetres), or when no two are more than
+    :data:`MIN_BASELINE_M` apart (no baseline: poses missing, e.g. every ``cam_from_rig`` the identity)."""
     centres = np.array([c.centre for c in cameras])
     d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
     i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+    if len(cameras) >= 2 and d[i, j] < MIN_BASELINE_M:
+        raise InputError(source, f"all {len(cameras)} cameras share one centre (at most {d[i, j]:.3g} m apart): no "
+                                 "baseline to triangulate from; the cameras' poses are missing or wrong",
+                         "cam_from_rig")
     if d[i, j] > MAX_BASELINE_M:
         raise InputError(source, f"cameras {cameras[i].name} and {cameras[j].name} are {d[i, j]:g} m apart (more "
                                  f"than {MAX_BASELINE_M:g} m): is the rig in millimetres? heartcv rig files are in "

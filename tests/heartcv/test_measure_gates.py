@@ -93,6 +93,10 @@ def test_rig_in_millimetres_is_refused():
     with pytest.raises(InputError, match=r"cam0 and cam1 are 5.5 m apart.*millimetres") as exc:
         check_rig_scale(mm, "rig.yaml")
     assert exc.value.field == "cam_from_rig" and MAX_BASELINE_M == 1.0
+    same = [cams[0], cams[1].with_pose(np.eye(4))]              # both at the origin: no baseline
+    with pytest.raises(InputError, match=r"all 2 cameras share one centre \(at most 0 m apart\)") as exc:
+        check_rig_scale(same, "rig.yaml")
+    assert exc.value.field == "cam_from_rig"
 
 
 def test_highlights_at_points_equal_the_dilated_mask():
