@@ -292,9 +292,9 @@ def _guard(output, csv_file, inputs):
 # -- inputs ------------------------------------------------------------------------------------------------------
 def _check_sizes(source, rig, count, rig_file):
     """Exit 2 if a camera's first readable image does not have the rig's image size (the rig does not belong to
-    the images)."""
+    the images), or more than a tenth of its images have another size (image folders)."""
     from heartcv.io import FrameReader
-    from heartcv.measure_data import check_image_sizes
+    from heartcv.measure_data import check_image_size_census, check_image_sizes
 
     def locate(c, k):
         return source.files[c][k if source.kind == "images" else 0]
@@ -303,6 +303,8 @@ def _check_sizes(source, rig, count, rig_file):
         if source.packing:
             _check_packed(reader, source, count, locate)
         check_image_sizes(rig.cameras, reader.read, count, locate, f"the rig {rig_file}")
+    if source.kind == "images" and not source.packing:
+        check_image_size_census(rig.cameras, [fs[:count] for fs in source.files], f"the rig {rig_file}")
 
 
 def _check_packed(reader, source, count, locate):

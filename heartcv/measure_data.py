@@ -18,7 +18,8 @@ from .tracker.files import InputError
 __all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_times", "GRID_TOLERANCE",
            "uniform_times", "frame_grid", "container_times", "expand_to_grid", "rectified_v_offsets",
            "rectified_cameras", "inputs_at_frames", "check_image_sizes", "truth_for_frames", "truth_statistics",
-           "reference_pixels", "measurement_summary", "CSV_HEADER", "measurement_csv_lines", "frame_spans"]
+           "reference_pixels", "measurement_summary", "CSV_HEADER", "measurement_csv_lines", "frame_spans",
+           "OTHER_SIZE_FRACTION", "check_image_size_census"]
 
 # inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
 UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
@@ -235,6 +236,38 @@ def inputs_at_frames(columns: dict, times) -> tuple[tuple, tuple, np.ndarray]:
         units.append(unit)
         vals.append(np.interp(times, t, v) * factor)
     return tuple(names), tuple(units), np.stack(vals, axis=1) if vals else np.zeros((times.size, 0))
+
+
+#: More than this fraction of a camera's images of another size than the rig's (as for missing images,
+#: ``heartcv.io.open_frame_source``'s ``max_missing_fraction``) is an error, not a few bad frames
+OTHER_SIZE_FRACTION = 0.1
+
+
+def check_image_size_census(cameras, files, rig_name: str = "the rig") -> None:
+    """Read the header of every image file (``files[c][k]``, None where missing) and raise :class:`InputError`
+    naming the camera, the count and the first such file where more than :data:`OTHER_SIZE_FRACTION` of a camera's
+    images (at least 2) have another size than the rig's camera: the folder mixes recordings, or the rig is not
+    theirs. Fewer are left out frame by frame, each with a warning, when read. Unreadable headers are skipped
+    (their frames name them)."""
+    from PIL import Image
+
+    for cam, fs in zip(cameras, files, strict=True):
+        present = [f for f in fs if f is not None]
+        other = []
+        for f in present:
+            try:
+                with Image.open(f) as im:
+                    size = im.size
+            except Exception:       # noqa: BLE001 -- unreadable: named when its frame is read
+                continue
+            if tuple(size) != tuple(cam.size):
+                other.append((f, size))
+        if len(other) >= 2 and len(other) > OTHER_SIZE_FRACTION * len(present):
+            f, (w, h) = other[0]
+            raise InputError(f, f"{len(other)} of camera {cam.name}'s {len(present)} images are of another size "
+                                f"than the rig's {cam.width}x{cam.height} (this one {w}x{h}); more than "
+                                f"{OTHER_SIZE_FRACTION:.0%} is not a few bad frames: the folder mixes recordings, or "
+                                f"{rig_name} is not theirs", "images")
 
 
 def check_image_sizes(cameras, read, count: int, locate, rig_name: str = "the rig") -> None:

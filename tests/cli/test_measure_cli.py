@@ -284,6 +284,31 @@ def test_different_frame_counts_exit_2_naming_the_counts(case):
     _assert_no_output(case)
 
 
+def test_many_images_of_another_size_exit_2_a_single_one_is_left_out(case):
+    """One of cam2's 10 images halved: left out of its frame with a warning; two (20 %, more than a tenth): exit 2
+    before any work, naming the camera, the count and the first such image (before 2026-11-29 the run went on)."""
+    import cv2
+
+    def halve(k):
+        path = case["seq"] / "cam2" / f"{k:06d}.png"
+        im = cv2.imread(str(path))
+        cv2.imwrite(str(path), cv2.resize(im, (im.shape[1] // 2, im.shape[0] // 2)))
+
+    halve(6)
+    res = _measure(case)
+    assert res.exit_code == 0, res.output
+    assert "000006.png" in res.stderr
+    _, using, _ = _views_in_frame(case, 6, "cam2")
+    assert using == []
+    for p in case["out"].iterdir():
+        p.unlink()
+    halve(3)
+    res = _measure(case)
+    _assert_failed_cleanly(res, "cam2/000003.png: images: 2 of camera cam2's 10 images are of another size than "
+                                "the rig's")
+    _assert_no_output(case)
+
+
 def test_rig_of_another_image_size_exit_2(case):
     from heartcv.camera import Camera, Rig
     from heartcv.io import read_rig, write_rig
