@@ -480,6 +480,16 @@ def _expanded_size(node, limit: int) -> int:
     return count(node)
 
 
+def _yaml_problem(exc) -> str:
+    """A YAML parser's error on one line: its problem and where (``line L, column C``), without the echoed source
+    lines and caret the parser adds."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    parts = [str(p) for p in (getattr(exc, "context", None), getattr(exc, "problem", None)) if p]
+    text = "; ".join(parts) if parts else " ".join(str(exc).split())
+    where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+    return (text + where)[:400]
+
+
 def parse_yaml(text: str, path=None):
     """Parse YAML text with the limits of :data:`LIMITS`; InputError naming ``path`` for invalid YAML, duplicate keys,
     or a document past a limit (alias bombs, deep nesting)."""
@@ -488,7 +498,7 @@ def parse_yaml(text: str, path=None):
     try:
         loader = _loader_class()(text)   # the reader refuses non-printable characters here
     except yaml.YAMLError as exc:
-        raise InputError(path, f"not valid YAML: {str(exc)[:400]}") from None
+        raise InputError(path, f"not valid YAML: {_yaml_problem(exc)}") from None
     try:
         node = loader.get_single_node()
         if node is None:
@@ -499,7 +509,7 @@ def parse_yaml(text: str, path=None):
     except _Limit as exc:
         raise InputError(path, f"refused: the YAML document is {exc}") from None
     except yaml.YAMLError as exc:
-        raise InputError(path, f"not valid YAML: {str(exc)[:400]}") from None
+        raise InputError(path, f"not valid YAML: {_yaml_problem(exc)}") from None
     except RecursionError:
         raise InputError(path, "refused: the YAML document is nested too deeply") from None
     except ValueError as exc:  # construction of a scalar: an integer of more than 4300 digits (Python's limit)

@@ -178,6 +178,20 @@ def test_yaml_alias_bomb_deep_nesting_and_duplicates_are_refused(tmp_path):
     assert F.parse_yaml(ok) == {"a": [1, 2], "b": [1, 2], "c": [1, 2]}
 
 
+@pytest.mark.parametrize("text, message", [
+    ("a: 1\n\tb: 2\n", "found character '\\t' that cannot start any token (line 2, column 1)"),
+    ("a: 1\na: 2\n", "duplicate key 'a' (line 2, column 1)"),
+    ("a: [1, 2\n", "(line 2, column 1)"),
+    ("a: !!python/object:os.system x\n", "could not determine a constructor for the tag"),
+])
+def test_yaml_syntax_errors_are_one_line_with_where(text, message):
+    """Before 2026-11-29 the parser's own message came through: 4-6 lines with the source echoed and a caret."""
+    with pytest.raises(InputError) as exc:
+        F.parse_yaml(text, "x.yaml")
+    reason = str(exc.value)
+    assert "\n" not in reason and reason.startswith("x.yaml: not valid YAML: ") and message in reason, reason
+
+
 def test_yaml_numbers_text_and_limits(tmp_path, monkeypatch):
     assert F.parse_yaml("a: 1e-3\nb: -2E+5\nc: 1.5\nd: 7\ne: '1e3'\nf: .inf\ng: 0x10\n") == {
         "a": 1e-3, "b": -2e5, "c": 1.5, "d": 7, "e": "1e3", "f": float("inf"), "g": 16}
