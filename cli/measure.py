@@ -325,10 +325,11 @@ def _check_packed(reader, source, count, locate):
 
 def _check_rig_scale(rig, rig_file):
     """Exit 2 for a rig whose cameras are farther apart than :data:`heartcv.measure_data.MAX_BASELINE_M` (a rig
-    written in millimetres)."""
-    from heartcv.measure_data import check_rig_scale
+    written in millimetres) or share one centre, or whose ``rectified``/``baseline_m`` are wrong."""
+    from heartcv.measure_data import check_rectified_meta, check_rig_scale
 
     check_rig_scale(rig.cameras, rig_file)
+    check_rectified_meta(rig, rig_file)
 
 
 def _frame_times(source, fps, count, ref=0):

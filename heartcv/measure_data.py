@@ -19,7 +19,8 @@ __all__ = ["UNIT_SUFFIXES", "DEFAULT_FPS", "split_unit", "frame_times", "field_t
            "uniform_times", "frame_grid", "container_times", "expand_to_grid", "rectified_v_offsets",
            "rectified_cameras", "inputs_at_frames", "check_image_sizes", "truth_for_frames", "truth_statistics",
            "reference_pixels", "measurement_summary", "CSV_HEADER", "measurement_csv_lines", "frame_spans",
-           "OTHER_SIZE_FRACTION", "check_image_size_census"]
+           "OTHER_SIZE_FRACTION", "check_image_size_census",
+           "check_rectified_meta"]
 
 # inputs.csv column suffix -> (unit written to the measurement file, factor to SI)
 UNIT_SUFFIXES = {"_pa": ("Pa", 1.0), "_kpa": ("Pa", 1e3), "_mmhg": ("Pa", 133.322387415), "_m": ("m", 1.0),
@@ -375,6 +376,25 @@ MAX_BASELINE_M = 1.0
 #: Cameras of one rig all closer than this (m) have no baseline to triangulate from (a micrometre: far below any
 #: stereo endoscope's 4-6 mm).
 MIN_BASELINE_M = 1e-6
+
+
+def check_rectified_meta(rig, source) -> None:
+    """Raise :class:`InputError` for a rig file whose ``rectified`` is not true or false, or whose recorded
+    ``baseline_m`` (``heartcv rig rectified``) differs from its first two cameras' distance by more than 1 %: a file
+    edited by hand where the poses, which the measurement uses, were left as they were."""
+    meta = rig.meta or {}
+    rect = meta.get("rectified", False)
+    if not isinstance(rect, bool):
+        raise InputError(source, f"true or false expected, got {rect!r}", "rectified")
+    b = meta.get("baseline_m")
+    if rect and b is not None and len(rig.cameras) >= 2:
+        if isinstance(b, bool) or not isinstance(b, (int, float)) or not np.isfinite(b) or b <= 0:
+            raise InputError(source, f"a positive number of metres expected, got {b!r}", "baseline_m")
+        d = float(np.linalg.norm(rig.cameras[1].centre - rig.cameras[0].centre))
+        if abs(d - b) > 0.01 * b:
+            raise InputError(source, f"{b:g} m, but the cameras {rig.cameras[0].name} and {rig.cameras[1].name} are "
+                                     f"{d:g} m apart (cam_from_rig, which the measurement uses): edit both, or write "
+                                     "the rig again with heartcv rig rectified", "baseline_m")
 
 
 def check_rig_scale(cameras, source) -> None:

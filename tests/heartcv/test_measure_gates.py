@@ -99,6 +99,28 @@ def test_rig_in_millimetres_is_refused():
     assert exc.value.field == "cam_from_rig"
 
 
+def test_a_rectified_rig_s_meta_is_checked_against_its_poses():
+    """``rectified`` must be true or false; a ``baseline_m`` more than 1 % from the cameras' distance (a hand-edited
+    file: the poses are what the measurement uses) is refused naming it; the rig as written passes."""
+    from heartcv.camera import Rig
+    from heartcv.measure_data import check_rectified_meta
+    from heartcv.tracker.files import InputError
+
+    cams = tuple(_rectified_pair())
+    d = float(np.linalg.norm(cams[1].centre - cams[0].centre))
+    check_rectified_meta(Rig(cams, {"rectified": True, "baseline_m": d}), "rig.yaml")
+    check_rectified_meta(Rig(cams, {"rectified": True, "baseline_m": 1.005 * d}), "rig.yaml")
+    check_rectified_meta(Rig(cams, {}), "rig.yaml")
+    for meta, field, message in [({"rectified": 5}, "rectified", "true or false expected, got 5"),
+                                 ({"rectified": True, "baseline_m": 0.01}, "baseline_m",
+                                  f"0.01 m, but the cameras cam0 and cam1 are {d:g} m apart"),
+                                 ({"rectified": True, "baseline_m": "5 mm"}, "baseline_m",
+                                  "a positive number of metres expected")]:
+        with pytest.raises(InputError, match=message) as exc:
+            check_rectified_meta(Rig(cams, meta), "rig.yaml")
+        assert exc.value.field == field
+
+
 def test_highlights_at_points_equal_the_dilated_mask():
     """Highlights.at (the ellipse under each point, without dilating the frame) against cv2.dilate of the whole
     mask read at the points: random sparse blobs, some on the image border, points everywhere (borders, outside,
