@@ -90,7 +90,7 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     packing = _packing(packed, packed_cameras, timestamps_file)
     cameras = _find_cameras(Path(folder)) if packing is None else _find_packed(Path(folder), packing)
     names = [c[0] for c in cameras]
-    given, held = _given_intrinsics(intrinsics_file, hold, names)
+    given, held, given_sizes = _given_intrinsics(intrinsics_file, hold, names)
     extra = _find_intrinsic_views(intrinsic_folder, names)
     infos = _check_videos((cameras[:1] if packing else cameras) + [e for e in extra if e[1] == "video"])
     verbosity = (ctx.find_object(dict) or {}).get("verbosity", 0)
@@ -110,7 +110,7 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
             import numpy as np
 
             times = np.concatenate([times, np.full((len(names), len(view_names) - times.shape[1]), np.nan)], 1)
-    _check_given_sizes(intrinsics_file, names, given, sizes)
+    _check_given_sizes(intrinsics_file, names, given_sizes, sizes)
     cal = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views,
                      target_file, given=given, hold=held, times=times, folds=folds)
     rig = cal.rig
@@ -147,13 +147,14 @@ def _guard(out: Path, folder, target_file, more_inputs=None, report_dir=None) ->
 
 
 def _given_intrinsics(path, hold, names):
-    """Per camera (K, dist) from --intrinsics (matched by name) or None, and the held mask; exit 2 for a --hold
-    without --intrinsics, or naming a camera that is not in FOLDER or not in the file."""
+    """Per camera (K, dist) from --intrinsics (matched by name) or None, the held mask, and per camera the image
+    size those intrinsics are of (or None); exit 2 for a --hold without --intrinsics, or naming a camera that is not
+    in FOLDER or not in the file."""
     held = [False] * len(names)
     if path is None:
         if hold:
             raise BadInput("--hold needs --intrinsics (the values to keep)")
-        return [None] * len(names), held
+        return [None] * len(names), held, [None] * len(names)
     from heartcv.io import read_rig
 
     rig = read_rig(path)
@@ -177,20 +178,15 @@ def _given_intrinsics(path, hold, names):
         if given[i] is not None:
             cam = rig[n]
             log.info("%s: intrinsics from %s (fx %.1f px)%s", n, path, cam.K[0, 0], ", held" if held[i] else "")
-    return given, held
+    return given, held, [tuple(rig[n].size) if g is not None else None for n, g in zip(names, given, strict=True)]
 
 
-def _check_given_sizes(path, names, given, sizes):
+def _check_given_sizes(path, names, given_sizes, sizes):
     """Exit 2 where --intrinsics gives a camera intrinsics of another image size than its views' (pixels of other
     images: a focal length and principal point off by the ratio)."""
-    if path is None:
-        return
-    from heartcv.io import read_rig
-
-    rig = read_rig(path)
-    for n, g, size in zip(names, given, sizes, strict=True):
-        if g is not None and size is not None and tuple(rig[n].size) != tuple(size):
-            raise BadInput(f"--intrinsics: {path}: camera {n} is {rig[n].width}x{rig[n].height} px, but its views "
+    for n, g, size in zip(names, given_sizes, sizes, strict=True):
+        if g is not None and size is not None and tuple(g) != tuple(size):
+            raise BadInput(f"--intrinsics: {path}: camera {n} is {g[0]}x{g[1]} px, but its views "
                            f"in FOLDER are {size[0]}x{size[1]}: these intrinsics are of other images (another "
                            "resolution or crop); calibrate without --intrinsics or give the intrinsics of these "
                            "images")

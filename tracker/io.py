@@ -437,11 +437,9 @@ def parameters_from_dict(d, path="<parameters>"):
             and np.isfinite(theta).all()):
         raise bad("theta", f"outside the physical range (rho, E > 0; alpha >= 0; 0 < nu < 0.5): {theta.tolist()}")
     theta_std = per_name("theta_std", NAMES, required=False)
-    if not (theta_std >= 0).all():            # NaN: not determined, as the fit writes it
-        bad_std = [n for n, v in zip(NAMES, theta_std, strict=True) if v < 0]
-        if bad_std:
-            raise bad(f"theta_std.{bad_std[0]}", f"a standard deviation of at least 0 expected, got "
-                                                 f"{theta_std[NAMES.index(bad_std[0])]}")
+    for n, v in zip(NAMES, theta_std, strict=True):     # NaN (not determined, as the fit writes it) passes
+        if v < 0:
+            raise bad(f"theta_std.{n}", f"a standard deviation of at least 0 expected, got {v}")
     est = d.get("estimated", [])
     if not isinstance(est, list) or any(n not in NAMES for n in est) or len(set(est)) != len(est):
         raise bad("estimated", f"a list of distinct names from {list(NAMES)} expected, got {est!r}")
