@@ -61,7 +61,7 @@ heart-ramp: $(STAMP)
 # geometry and frame rate variables)
 demo-invivo: $(STAMP)
 	$(MAKE) -C sample_sequences demo-invivo PY=$(abspath $(PY)) $(if $(INVIVO),INVIVO=$(abspath $(INVIVO))) \
-		$(if $(WORK),WORK=$(abspath $(WORK)))
+		$(if $(WORK),WORK=$(abspath $(WORK))) $(if $(IV_RIG),IV_RIG=$(abspath $(IV_RIG)))
 
 bench: $(STAMP)
 	$(PY) -m benchmarks all

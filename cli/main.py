@@ -120,9 +120,9 @@ class InternalError(click.ClickException):
 def main(ctx, verbose, quiet):
     """heartcv: physics-based tracking of beating-heart surface motion.
 
-    Available: `target`, `render`, `calibrate`, `measure`, `model info`, `model simulate`, `track` (kf, ge,
-    ukf, ekf), `fit`, `report`, `simulate` (Monte-Carlo study of the estimators). Logs go to stderr; --json
-    summaries to stdout.
+    Available: `target`, `rig` (import, rectified), `render`, `calibrate`, `measure`, `model info`, `model
+    simulate`, `fit`, `track` (kf, ge, ukf, ekf; baselines hold, constvel, harmonic), `report`, `simulate`
+    (Monte-Carlo study of the estimators). Logs go to stderr; --json summaries to stdout.
     """
     verbosity = verbose - quiet
     # INFO by default: a stage's summary line is INFO, WARNING is kept for what the user should act on; -q

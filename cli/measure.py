@@ -108,10 +108,11 @@ MAX_WORKERS = 1024
               help="With --fields both: which field was taken first (top: rows 0, 2, ...); auto: from the first "
                    "frames' motion (top when they cannot tell, with a warning).")
 @click.option("--vertical-offset", type=click.Choice(["auto", "none"]), default="auto", show_default=True,
-              help="A rig of a pre-rectified pair (heartcv rig rectified), sparse mode: auto measures how far each "
-                   "camera's views lie below the reference camera's in the first frames (a pair rectified slightly "
-                   "off) and, where that is significant, measures with its principal point moved by it; none: the rig "
-                   "as given. Other rigs, and --dense, use the rig as given.")
+              help="A rig of a pre-rectified pair (rectified: true, heartcv rig rectified): auto measures how far "
+                   "each camera's views lie below the reference camera's in the first frames (a pair rectified "
+                   "slightly off; SIFT descriptors, then in sparse mode the tracks of repeated probes) and, where "
+                   "that is significant, measures with its principal point moved by it; none: the rig as given. "
+                   "Calibrated rigs are always used as given.")
 @click.option("--repeated-frames", type=click.Choice(["drop", "keep"]), default="drop", show_default=True,
               help="A camera's frame that repeats its previous one (no new exposure: a frame-rate conversion, a "
                    "capture that froze or dropped frames; identical up to compression noise while the view was "
@@ -340,6 +341,8 @@ def _frame_times(source, fps, count, ref=0):
     from heartcv.measure_data import DEFAULT_FPS, container_times, frame_times
 
     ts = source.folder / "timestamps.csv"
+    if fps is not None and ts.is_file():
+        log.warning("--fps %g given: %s is not read (the frames are taken at a constant %g per second)", fps, ts, fps)
     stamps = read_timestamps(ts, source.frame_names) if fps is None and ts.is_file() else None
     if stamps is None and fps is None and source.kind == "video" and source.videos:
         info = source.videos[0 if source.packing else ref]

@@ -290,9 +290,10 @@ def _fit_split_rows(doc):
                      mm(e.get("heldout_prediction_error_after_fit_mean_m")),
                      f"{_num(e.get('log_likelihood_within_fit_per_point'), '{:.4f}')} / "
                      f"{_num(e.get('log_likelihood_after_fit_per_point'), '{:.4f}')}"])
-    intro = (f"The parameters (and an estimated input) were fitted to frames 0–{n - 1} (heartcv fit --frames): the "
-             f"predictions of frames 1–{n - 1} are in-sample, those from frame {n} on out-of-sample. Tracks seen the "
-             "frame before leave out those re-appearing after a gap, which hold predicts at their last position.")
+    intro = (f"The parameters (and an estimated input) were fitted to frames 0–{n - 1} (heartcv fit --frames or "
+             f"--duration): the predictions of frames 1–{n - 1} are in-sample, those from frame {n} on "
+             "out-of-sample. Tracks seen the frame before leave out those re-appearing after a gap, which hold "
+             "predicts at their last position.")
     return "Within and after the fitted frames", intro, head, rows
 
 

@@ -436,8 +436,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
          + (" Dash-dotted: the tracks' own upper bound of its frame-to-frame part (a quadratic field's residual over "
             "one frame, over √2; a track's persistent error is not in it)."
             if noise_bound is not None else "")
-         + (" Vertical dotted line: the first frame after those that fitted the parameters (heartcv fit --frames); "
-            "the predictions before it are in-sample." if fit_end is not None else ""))
+         + (" Vertical dotted line: the first frame after those that fitted the parameters (heartcv fit --frames or "
+            "--duration); the predictions before it are in-sample." if fit_end is not None else ""))
     for j in _shown_parameters(runs, ps, truth):
         name = NAMES[j]
         tr = (truth["times"], truth["theta"][:, j]) if truth is not None else None

@@ -31,10 +31,15 @@ def partial_path(output) -> Path:
     return p.with_name(p.name[: -len(p.suffix)] + ".partial" + p.suffix if p.suffix else p.name + ".partial")
 
 
+_UNSET = "unset"
+
+
 def _track_offsets(ctx, param, value):
     """'none' -> None, 'auto', or a positive finite standard deviation (m per frame)."""
     import math
 
+    if value is None:   # not given: 'auto' for the model-based estimators, nothing for the baselines
+        return _UNSET
     v = str(value).strip().lower()
     if v in ("none", "auto"):
         return None if v == "none" else "auto"
@@ -109,12 +114,12 @@ def _odd_nodes(ctx, param, value):
 @click.option("--heart-rate-hz", type=Float(0.1, 10.0), default=None,
               help="harmonic: the heart rate of the periodic predictor (default: the dominant frequency of the "
                    "tracks' motion in 0.5-4 Hz).")
-@click.option("--track-offsets", "track_offsets", default="none", show_default=True, callback=_track_offsets,
+@click.option("--track-offsets", "track_offsets", default=None, show_default="auto", callback=_track_offsets,
               help="kf/ge/ukf/ekf: per-track offsets, a random walk beside the state that takes up what each point "
-                   "does and the model cannot (a track sliding on the tissue; docs/estimators.md 3.9). 'none'; "
-                   "'auto': its standard deviation per frame by maximum likelihood of the KF's innovations over the "
-                   "fitted frames (--params; else the first 100), 'none' among the candidates; or a standard "
-                   "deviation per frame in metres.")
+                   "does and the model cannot (a track sliding on the tissue; docs/estimators.md 3.9). 'auto': "
+                   "its standard deviation per frame by maximum likelihood of the KF's innovations over the "
+                   "fitted frames (--params; else the first 100), no offsets among the candidates; 'none'; or a "
+                   "standard deviation per frame in metres.")
 @click.option("--without-input", is_flag=True,
               help="kf/ge/ukf/ekf with an estimated input (--params of a fit without pressure): pin the input's "
                    "harmonics at zero, the rigid motion unchanged. An ablation: compared with the same run with the "
@@ -157,8 +162,10 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     from heartcv.tracker.tracking import EstimationDiverged
 
     _check_scope(estimator, nodes, truncation, joseph, heart_rate_hz)
-    if estimator in BASELINES and track_offsets is not None:
+    if estimator in BASELINES and track_offsets != _UNSET:
         raise BadInput("--track-offsets applies to the model-based estimators (kf, ge, ukf, ekf) only")
+    if track_offsets == _UNSET:
+        track_offsets = None if estimator in BASELINES else "auto"
     if estimator in BASELINES and without_input:
         raise BadInput("--without-input applies to the model-based estimators (kf, ge, ukf, ekf) only")
     if without_input and params_file is None:

@@ -149,6 +149,23 @@ def test_a_segment_is_measured_as_the_recording_cut_to_it(case, tmp_path):
     assert not (case["out"] / "none.npz").exists()
 
 
+def test_fps_given_replaces_timestamps_with_a_warning(case):
+    """--fps beside a timestamps.csv: the frames at k / fps (not the file's times), and a warning naming the file
+    it did not read; without --fps the file's times."""
+    from heartcv.tracker.io import read_measurements
+
+    stamps = [float(r["time_s"]) for r in _read_csv(case["seq"] / "timestamps.csv")]
+    res = _measure(case, "--frames", 3, "--fps", 7, out=case["out"] / "fps.npz")
+    assert res.exit_code == 0, res.output
+    assert "--fps 7 given" in res.stderr and "timestamps.csv is not read" in res.stderr, res.stderr
+    assert np.allclose(read_measurements(case["out"] / "fps.npz").times, np.arange(3) / 7.0)
+    assert not np.allclose(np.arange(3) / 7.0, np.asarray(stamps[:3]) - stamps[0])
+    res = _measure(case, "--frames", 3, out=case["out"] / "ts.npz")
+    assert res.exit_code == 0, res.output
+    assert "timestamps.csv is not read" not in res.stderr
+    assert np.allclose(read_measurements(case["out"] / "ts.npz").times, np.asarray(stamps[:3]) - stamps[0])
+
+
 # -- a good run -------------------------------------------------------------------------------------------------
 def test_json_summary_keys_with_and_without_truth(case):
     from heartcv.tracker.io import read_measurements

@@ -127,3 +127,29 @@ def test_track_offsets_option(tmp_path, meas_file):
     res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "hold", "--track-offsets",
                                     "auto", "-o", str(tmp_path / "y.npz")])
     assert res.exit_code == 2 and "model-based estimators" in res.output
+
+
+def test_track_offsets_default_is_auto_for_the_model_and_absent_for_the_baselines(tmp_path, meas_file):
+    """Without --track-offsets a model-based run selects the offsets by maximum likelihood (the same run as
+    'auto', to the bit), 'none' runs without them (no meta.track_offsets, the library run without drift), and a
+    baseline runs without them (the option is refused only when given)."""
+    from heartcv.cli.options import load_model
+    from heartcv.tracker.tracking import run_kalman
+
+    runs = {}
+    for name, extra in (("default", []), ("auto", ["--track-offsets", "auto"]), ("none", ["--track-offsets", "none"])):
+        runs[name] = str(tmp_path / f"{name}.npz")
+        res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "kf", "--no-adapt",
+                                        "-o", runs[name]] + extra)
+        assert res.exit_code == 0, res.output
+    d, a, n = (read_estimates(runs[k]) for k in ("default", "auto", "none"))
+    assert d.meta["track_offsets"]["source"] == "maximum likelihood (--track-offsets auto)"
+    assert d.meta["track_offsets"]["std_per_frame_m"] == a.meta["track_offsets"]["std_per_frame_m"]
+    np.testing.assert_array_equal(d.predictions, a.predictions)
+    assert "track_offsets" not in n.meta
+    lib = run_kalman(load_model(PAPER), read_measurements(meas_file))
+    np.testing.assert_allclose(n.predictions, lib.predictions, rtol=1e-10, equal_nan=True)
+    res = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "hold",
+                                    "-o", str(tmp_path / "hold.npz")])
+    assert res.exit_code == 0, res.output
+    assert "track_offsets" not in read_estimates(str(tmp_path / "hold.npz")).meta
