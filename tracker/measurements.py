@@ -11,10 +11,48 @@ from .files import InputError
 __all__ = ["MeasurementSet", "EstimateSet", "frames_within"]
 
 
+def _frozen(a) -> bool:
+    """True when neither ``a`` nor any array it views can be written: sharing it keeps a set immutable."""
+    while isinstance(a, np.ndarray):
+        if a.flags.writeable:
+            return False
+        a = a.base
+    return a is None or isinstance(a, bytes)
+
+
 def _ro(a, dtype=float):
+    """A read-only array of ``dtype``: ``a`` itself when it already is one that nothing can write (another set's
+    array, e.g. through ``dataclasses.replace``: no copy of the frames x points arrays), else a read-only copy."""
+    if isinstance(a, np.ndarray) and a.dtype == np.dtype(dtype) and _frozen(a):
+        return a
     a = np.array(a, dtype=dtype)
     a.setflags(write=False)
     return a
+
+
+_CHUNK = 65536
+"""Covariances checked at a time (their temporaries stay a few MB however many frames and points)."""
+
+
+def _first_bad_covariance(cov, seen):
+    """``(index into the seen observations, reason)`` of the first seen covariance that is not finite, symmetric and
+    positive definite, or None; checked in chunks of :data:`_CHUNK`."""
+    idx = np.flatnonzero(seen.reshape(-1))
+    flat = cov.reshape(-1, 3, 3)
+    for start in range(0, idx.size, _CHUNK):
+        cs = flat[idx[start:start + _CHUNK]]
+        fin = np.isfinite(cs).all(axis=(1, 2))
+        if not fin.all():
+            return start + int(np.flatnonzero(~fin)[0]), "non-finite covariance for an observed point"
+        scale = np.abs(cs).max(axis=(1, 2))
+        asym = np.abs(cs - np.swapaxes(cs, -1, -2)).max(axis=(1, 2))
+        if (asym > 1e-9 * scale).any():
+            return start + int(np.flatnonzero(asym > 1e-9 * scale)[0]), "not symmetric"
+        ev = np.linalg.eigvalsh(0.5 * (cs + np.swapaxes(cs, -1, -2)))
+        bad = ev[:, 0] <= 1e-12 * np.maximum(ev[:, -1], np.finfo(float).tiny)
+        if bad.any():
+            return start + int(np.flatnonzero(bad)[0]), "singular or not positive definite"
+    return None
 
 
 @dataclass(frozen=True)
@@ -70,25 +108,10 @@ class MeasurementSet:
         if partial.any():
             k, p = np.argwhere(partial)[0]
             raise InputError(None, f"frame {k}, point {p} has some but not all coordinates NaN", "positions")
-        cs = cov[seen]
-        if cs.size:
-            where = np.argwhere(seen)
-
-            def first(bad, what):
-                k, p = where[np.flatnonzero(bad)[0]]
-                raise InputError(None, f"frame {k}, point {p}: {what}", "covariances")
-
-            fin = np.isfinite(cs).all(axis=(1, 2))
-            if not fin.all():
-                first(~fin, "non-finite covariance for an observed point")
-            scale = np.abs(cs).max(axis=(1, 2))
-            asym = np.abs(cs - np.swapaxes(cs, -1, -2)).max(axis=(1, 2))
-            if (asym > 1e-9 * scale).any():
-                first(asym > 1e-9 * scale, "not symmetric")
-            ev = np.linalg.eigvalsh(0.5 * (cs + np.swapaxes(cs, -1, -2)))
-            bad = ev[:, 0] <= 1e-12 * np.maximum(ev[:, -1], np.finfo(float).tiny)
-            if bad.any():
-                first(bad, "singular or not positive definite")
+        found = _first_bad_covariance(cov, seen)
+        if found is not None:
+            k, p = np.argwhere(seen)[found[0]]
+            raise InputError(None, f"frame {k}, point {p}: {found[1]}", "covariances")
         ref = _ro(self.reference)
         if ref.shape != (P, 3) or not np.isfinite(ref).all():
             raise InputError(None, f"finite array of shape ({P}, 3) expected, got {ref.shape}", "reference")
@@ -106,13 +129,12 @@ class MeasurementSet:
             raise InputError(None, f"{u.shape[1]} names and units expected", "input_names/input_units")
         if self.frame not in ("patch", "rig"):
             raise InputError(None, f"'patch' or 'rig' expected, got {self.frame!r}", "frame")
-        views = np.zeros((K, P), np.int64) if self.views is None else np.array(self.views, np.int64)
-        rms = np.full((K, P), np.nan) if self.reprojection_rms is None else np.array(self.reprojection_rms, float)
+        views = _ro(np.zeros((K, P), np.int64) if self.views is None else self.views, np.int64)
+        rms = _ro(np.full((K, P), np.nan) if self.reprojection_rms is None else self.reprojection_rms)
         if views.shape != (K, P) or rms.shape != (K, P):
             raise InputError(None, f"shape ({K}, {P}) expected", "views/reprojection_rms")
         for name, val in (("times", t), ("positions", pos), ("covariances", cov), ("reference", ref),
-                          ("point_ids", ids), ("inputs", u), ("views", _ro(views, np.int64)),
-                          ("reprojection_rms", _ro(rms))):
+                          ("point_ids", ids), ("inputs", u), ("views", views), ("reprojection_rms", rms)):
             object.__setattr__(self, name, val)
         object.__setattr__(self, "input_names", names)
         object.__setattr__(self, "input_units", units)
