@@ -89,6 +89,9 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     spec = read_target(target_file)
     packing = _packing(packed, packed_cameras, timestamps_file)
     cameras = _find_cameras(Path(folder)) if packing is None else _find_packed(Path(folder), packing)
+    if packing is None and timestamps_file and cameras[0][1] != "video":   # before any detection
+        raise BadInput(f"--timestamps: {timestamps_file}: per-camera frame times apply to video input (image folders "
+                       "are matched by file name)")
     names = [c[0] for c in cameras]
     given, held, given_sizes = _given_intrinsics(intrinsics_file, hold, names)
     extra = _find_intrinsic_views(intrinsic_folder, names)
@@ -295,6 +298,15 @@ def _find_cameras(folder: Path):
     names = [c[0] for c in cams]
     if len(set(names)) != len(names) or any(any(ch.isspace() for ch in n) for n in names):
         raise InputError(folder, f"camera names must be unique and without spaces, got {names}", "FOLDER")
+    if not videos:   # image folders are paired by file stem (or frame number): unpaired cameras refused now
+        from heartcv.io import pair_instants
+
+        try:
+            _, _, by = pair_instants(names, [fs for _, _, fs in cams])
+        except ValueError as exc:
+            raise InputError(folder, str(exc), "FOLDER") from None
+        if by == "number":
+            log.info("%s: the cameras' files share no name; views paired by the last number in the names", folder)
     return cams
 
 
@@ -407,12 +419,12 @@ def _packed_error(path, exc):
 
 
 def _instants(cameras, every):
-    """Instant names and, per camera, {instant: path} for image folders (matched by file stem)."""
-    from heartcv.io import natural_key
+    """Instant names and, per camera, {instant: path} for image folders (matched by file stem, else by frame
+    number: :func:`heartcv.io.pair_instants`)."""
+    from heartcv.io import pair_instants
 
-    per_cam = [{p.stem: p for p in paths} for _, _, paths in cameras]
-    names = sorted(set().union(*per_cam), key=natural_key)[::every]
-    return names, per_cam
+    names, per_cam, _ = pair_instants([c[0] for c in cameras], [paths for _, _, paths in cameras])
+    return names[::every], per_cam
 
 
 def _detect_all(cameras, spec, every, jobs, verbosity, infos=None):

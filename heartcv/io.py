@@ -17,6 +17,7 @@ append their own clearly delimited sections at the end.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import logging
 import os
 from pathlib import Path
 import re
@@ -43,9 +44,11 @@ from .tracker.files import (
 )
 from .tracker.files import read_yaml as _read_yaml
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "HeartcvIOError", "atomic_path", "file_hash", "dump_yaml", "read_yaml", "write_yaml",
-    "IMAGE_SUFFIXES", "read_image", "write_image", "list_image_folder", "natural_key",
+    "IMAGE_SUFFIXES", "read_image", "write_image", "list_image_folder", "natural_key", "pair_instants",
     "TARGET_FORMAT", "read_target", "write_target", "write_board_image",
     "RIG_FORMAT", "DIST_NAMES", "rig_to_dict", "rig_from_dict", "read_rig", "write_rig",
     "write_colmap", "colmap_camera", "write_kalibr", "kalibr_camchain",
@@ -93,6 +96,72 @@ def natural_key(name: str):
     """Sort key ordering embedded numbers by value (``img2`` before ``img10``), case-insensitively."""
     parts = re.split(r"(\d+)", name)
     return [(0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts], name
+
+
+def _linked(keys) -> list:
+    """Indices of the cameras linked to the first by shared keys (directly or through others)."""
+    group, todo = {0}, [0]
+    while todo:
+        i = todo.pop()
+        for j in range(len(keys)):
+            if j not in group and keys[i] & keys[j]:
+                group.add(j)
+                todo.append(j)
+    return sorted(group)
+
+
+_LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+def pair_instants(names, files):
+    """Pair the cameras' image files into instants.
+
+    ``files`` holds one list of image paths per camera (``names``). The same file stem is the same instant. Where
+    that links no camera to the first (files named per camera: ``left-1095.png`` / ``right-1095.png``,
+    ``f7_L_0100.png`` / ``f7_R_0100.png``), the last number in each stem is the instant, provided it is unique
+    within every camera and links them all.
+
+    Returns
+    -------
+    instants : list of str      instant names in natural order (the stems; numbered: the first camera's stem that
+                                holds the number, else the first other camera's)
+    per_cam : list of dict      per camera, instant name -> path
+    by : str                    ``"stem"`` or ``"number"``
+
+    Raises
+    ------
+    ValueError
+        Neither links the cameras: the message names the unlinked cameras and an example stem of each.
+    """
+    stems = [{p.stem: p for p in fs} for fs in files]
+    linked = _linked([set(d) for d in stems])
+    if len(linked) == len(stems) or len(stems) < 2:
+        return sorted(set().union(*stems), key=natural_key), stems, "stem"
+    numbered = []
+    for d in stems:
+        keyed = {}
+        for stem, path in d.items():
+            m = _LAST_NUMBER.search(stem)
+            if m is None or int(m.group(1)) in keyed:
+                keyed = None
+                break
+            keyed[int(m.group(1))] = (stem, path)
+        numbered.append(keyed)
+    if all(k is not None for k in numbered) and len(_linked([set(k) for k in numbered])) == len(stems):
+        keys = sorted(set().union(*numbered))
+        label = {k: next(d[k][0] for d in numbered if k in d) for k in keys}
+        per_cam = [{label[k]: d[k][1] for k in d} for d in numbered]
+        return [label[k] for k in keys], per_cam, "number"
+
+    def example(j):
+        return repr(min(stems[j], key=natural_key)) if stems[j] else "no files"
+
+    apart = [j for j in range(len(stems)) if j not in linked and stems[j]]
+    shown = ", ".join(f"{names[j]} ({example(j)})" for j in apart[:4])
+    raise ValueError(f"camera(s) {shown} share no file name (stem) with {names[0]} ({example(0)}), nor a frame number "
+                     "(the last number in the names, unique in each camera): an instant is the same stem in every "
+                     "camera's folder; rename the files so that an instant has one name (e.g. 0001.png in each "
+                     "folder)")
 
 
 def list_image_folder(folder) -> list[Path]:
@@ -833,8 +902,14 @@ def open_frame_source(folder, *, cameras=None, max_missing_fraction=0.1, cameras
                                      "sub-folder of images or one video file per camera)")
     names = [e[0] for e in entries]
     if cams:
-        per_cam = [{p.stem: p for p in fs} for _, fs in entries]
-        instants = sorted(set().union(*per_cam), key=natural_key)
+        try:
+            instants, per_cam, by = pair_instants(names, [fs for _, fs in entries])
+        except ValueError as exc:
+            raise HeartcvIOError(folder, str(exc)) from None
+        if by == "number":
+            log.info("%s: the cameras' files share no name; instants paired by the last number in the names (%s)",
+                     folder, ", ".join(f"{n} {min(d.values(), key=lambda q: natural_key(q.stem)).stem!r}"
+                                       for n, d in zip(names, per_cam) if d))
         counts = [len(d) for d in per_cam]
         allowed = max(1, int(max_missing_fraction * len(instants)))
         if min(counts) < len(instants) - allowed:

@@ -359,6 +359,12 @@ def check_output_folder(path, producer: str, label: str = "-o/--output") -> None
         what = "holds no heartcv manifest" if man is None else f"was written by {man.get('producer')!r}"
         raise InputError(path, f"exists and {what}: {producer} replaces only a folder it wrote itself; remove it "
                                "or choose another path", label)
+    if not isinstance(man.get("files"), list):
+        # written before manifests listed their files (heartcv before 2026-11-29): its files cannot be told from
+        # ones a person added, and replacing the folder would delete those
+        raise InputError(path, f"was written by an older {producer} whose manifest does not list its files, so files "
+                               "added to it since cannot be told apart and would be deleted on replacing it: remove "
+                               "the folder or choose another path", label)
     if isinstance(man.get("files"), list):      # folders written since the manifest lists its files
         wrote = {str(f) for f in man["files"]} | {MANIFEST_NAME}
         added = sorted(q.relative_to(path).as_posix() for q in path.rglob("*")
@@ -552,9 +558,20 @@ def _yaml_dumper():
         def increase_indent(self, flow=False, indentless=False):
             return super().increase_indent(flow, False)
 
+        # ... and reads no scalar folded onto a second line (a long warning, a method in words): never split one
+        def write_plain(self, text, split=True):
+            return super().write_plain(text, False)
+
+        def write_single_quoted(self, text, split=True):
+            return super().write_single_quoted(text, False)
+
+        def write_double_quoted(self, text, split=True):
+            return super().write_double_quoted(text, False)
+
     def represent_str(dumper, s):
-        # cv2.FileStorage misreads plain scalars that start like a number ('0.1.0'): quote them
-        style = "'" if s[:1] and (s[0].isdigit() or s[0] in "+-.") else None
+        # cv2.FileStorage misreads plain scalars that start like a number ('0.1.0') or hold a colon or a hash
+        # ('sha256:0a1b...'): quote them
+        style = "'" if s[:1] and (s[0].isdigit() or s[0] in "+-." or ":" in s or "#" in s) else None
         return dumper.represent_scalar("tag:yaml.org,2002:str", s, style=style)
 
     Dumper.add_representer(str, represent_str)

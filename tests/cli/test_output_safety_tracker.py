@@ -256,6 +256,24 @@ def test_a_report_folder_holding_a_file_a_person_added_is_kept(here):
     _ok("report", here / "kf.npz", "-o", rep, "--resamples", "0")
 
 
+def test_a_report_folder_of_an_older_manifest_is_kept(here):
+    """A folder written before manifests listed their files (no ``files`` key): a file a person added cannot be told
+    from the report's own, so the folder is not replaced (the earlier code replaced it and deleted the file)."""
+    import json
+
+    rep = here / "old"
+    _ok("report", here / "kf.npz", "-o", rep, "--resamples", "0")
+    man = json.loads((rep / "heartcv-manifest.json").read_text())
+    del man["files"]
+    (rep / "heartcv-manifest.json").write_text(json.dumps(man))
+    (rep / "notes.txt").write_text("mine")
+    before = _snapshot(rep)
+    res = _run("report", here / "kf.npz", "-o", rep, "--resamples", "0")
+    _refused(res, rep)
+    assert "whose manifest does not list its files" in res.stderr
+    assert _snapshot(rep) == before
+
+
 def test_simulate_into_a_folder_it_did_not_write_is_refused(here):
     """The old study stage wrote its files into any folder, replacing a nis.png or study.npz kept there."""
     folder = here / "results"

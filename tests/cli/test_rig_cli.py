@@ -162,6 +162,42 @@ def test_import_hamlyn(tmp_path):
         assert np.array_equal(a.K, b.K) and np.array_equal(a.cam_from_rig, b.cam_from_rig)
 
 
+@pytest.mark.skipif(not HAMLYN.is_dir(), reason="shared data not available (hamlyn_heart_phantom_f7)")
+def test_measure_pairs_files_named_per_camera_by_their_number(tmp_path):
+    """The Hamlyn phantom's views as its owners name them (left/f7_dynamic_deint_L_0100.png, right/..._R_0100.png:
+    no stem in common; measure found no corner, 'camera images missing'): paired by the frame number, the
+    measurement file equals that of a copy renamed to one stem per instant, array for array; its frame name is the
+    left file's stem."""
+    import shutil
+
+    from heartcv.tracker.io import read_measurements
+
+    rig = tmp_path / "rig.yaml"
+    assert _run("rig", "import", HAMLYN, "--image-size", "360x288", "--units", "mm", "-o", rig).exit_code == 0
+    native, renamed = tmp_path / "native", tmp_path / "renamed"
+    for cam, side in (("left", "L"), ("right", "R")):
+        (native / cam).mkdir(parents=True)
+        (renamed / cam).mkdir(parents=True)
+        shutil.copy(HAMLYN / f"f7_dynamic_deint_{side}_0100.png", native / cam)
+        shutil.copy(HAMLYN / f"f7_dynamic_deint_{side}_0100.png", renamed / cam / "0100.png")
+    out = {}
+    for name, seq in (("native", native), ("renamed", renamed)):
+        out[name] = tmp_path / f"{name}.npz"
+        res = _run("measure", seq, "--rig", rig, "--fps", "25", "-o", out[name])
+        assert res.exit_code == 0, res.output
+    assert "paired by the last number in the names" in _run("-v", "measure", native, "--rig", rig, "--fps", "25",
+                                                            "-o", tmp_path / "again.npz").stderr
+    a, b = read_measurements(out["native"]), read_measurements(out["renamed"])
+    assert a.n_points >= 40
+    for field in ("positions", "covariances", "reference", "point_ids"):
+        assert np.array_equal(getattr(a, field), getattr(b, field), equal_nan=True), field
+    assert a.meta["frame_names"] == ["f7_dynamic_deint_L_0100"] and b.meta["frame_names"] == ["0100"]
+    (native / "right" / "f7_dynamic_deint_R_0100.png").rename(native / "right" / "f7_dynamic_deint_R.png")
+    res = _run("measure", native, "--rig", rig, "--fps", "25", "-o", tmp_path / "none.npz")
+    assert res.exit_code == 2 and "right ('f7_dynamic_deint_R') share no file name (stem) with left" in res.output
+    assert not (tmp_path / "none.npz").exists()
+
+
 @pytest.mark.skipif(not CALISCOPE.is_dir(), reason="shared data not available (caliscope)")
 def test_import_caliscope(tmp_path):
     out = tmp_path / "caliscope.yaml"

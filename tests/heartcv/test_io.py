@@ -100,6 +100,31 @@ def test_rig_file_is_readable_by_cv2_filestorage(tmp_path, rng):
     fs.release()
 
 
+def test_rig_file_with_long_strings_and_hashes_is_readable_by_cv2_filestorage(tmp_path, rng):
+    """What real calibrations write: warnings longer than a line (PyYAML folded them onto a second line, which
+    cv2.FileStorage cannot read) and hashes 'sha256:<hex>' whose hex starts with a digit (a plain scalar with a
+    colon OpenCV misreads). Both come back from OpenCV exactly, and from heartcv's reader."""
+    rig = _rig(rng)
+    warning = ("cam1: the corners cover 12 % of the image; k2 and k3 held at 0 for want of coverage, "
+               "and the principal point's uncertainty is 41 px: more views near the corners of the image would "
+               "determine it (docs/cli.md 8.4) # not a comment")
+    digest = "sha256:0" + "1a2b3c4d" * 7 + "9e8f7a6"
+    rig = Rig(rig.cameras, dict(rig.meta, warnings=[warning, "short: one"], inputs_hash={"target": digest},
+                                method="x" * 300))
+    path = tmp_path / "rig.yaml"
+    write_rig(path, rig)
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    assert fs.isOpened()
+    assert fs.getNode("warnings").at(0).string() == warning
+    assert fs.getNode("warnings").at(1).string() == "short: one"
+    assert fs.getNode("inputs_hash").getNode("target").string() == digest
+    assert fs.getNode("method").string() == "x" * 300
+    assert fs.getNode("cameras").at(1).getNode("K").at(0).at(0).real() == rig.cameras[1].K[0, 0]
+    fs.release()
+    back = read_rig(path)
+    assert back.meta["warnings"] == [warning, "short: one"] and back.meta["inputs_hash"] == {"target": digest}
+
+
 def test_rig_without_meta_and_custom_frame(tmp_path):
     c0 = Camera("left", 640, 480, np.diag([500.0, 500, 1]), np.zeros(0), pose_matrix(np.eye(3), [0.1, 0, 0]))
     c1 = Camera("right", 640, 480, np.diag([500.0, 500, 1]), np.zeros(14))
@@ -337,6 +362,39 @@ def test_list_image_folder_natural_order(tmp_path):
         list_image_folder(tmp_path / "nope")
     with pytest.raises(HeartcvIOError, match="not a folder"):
         list_image_folder(tmp_path / "img2.png")
+
+
+def test_pair_instants_by_stem_then_by_frame_number():
+    """Image files pair by stem; cameras that share none pair by the last number in their names when it is unique
+    in each camera (left-0007 / right-0007), the instant named after the first camera's file; no pairing at all
+    is a ValueError naming the cameras and an example file of each."""
+    from pathlib import Path
+
+    from heartcv.io import pair_instants
+
+    def files(*stems):
+        return [Path(f"/x/{s}.png") for s in stems]
+
+    inst, per, by = pair_instants(["a", "b"], [files("1", "2", "10"), files("2", "10", "11")])
+    assert by == "stem" and inst == ["1", "2", "10", "11"]
+    assert per[1]["10"] == Path("/x/10.png") and "1" not in per[1]
+    inst, per, by = pair_instants(["left", "right"], [files("left-9", "left-10", "left-11"),
+                                                      files("right-10", "right-11", "right-12")])
+    assert by == "number" and inst == ["left-9", "left-10", "left-11", "right-12"]
+    assert per[1]["left-10"] == Path("/x/right-10.png") and per[0]["left-10"] == Path("/x/left-10.png")
+    assert "left-9" not in per[1] and per[1]["right-12"] == Path("/x/right-12.png")
+    # camera indices in the names do not count: the last number does (cam0_0001 / cam1_0001)
+    inst, per, by = pair_instants(["cam0", "cam1"], [files("cam0_0001", "cam0_0002"), files("cam1_0001", "cam1_0002")])
+    assert by == "number" and inst == ["cam0_0001", "cam0_0002"] and per[1]["cam0_0002"].name == "cam1_0002.png"
+    inst, per, by = pair_instants(["L"], [files("a", "b")])          # one camera: its stems
+    assert by == "stem" and inst == ["a", "b"]
+    with pytest.raises(ValueError, match=r"camera\(s\) right \('right-b'\) share no file name \(stem\) with left "
+                                         r"\('left-a'\)"):
+        pair_instants(["left", "right"], [files("left-a"), files("right-b")])       # no number
+    with pytest.raises(ValueError, match="share no file name"):
+        pair_instants(["left", "right"], [files("l-1", "l-2"), files("r-3", "r-4")])    # numbers never meet
+    with pytest.raises(ValueError, match="share no file name"):
+        pair_instants(["left", "right"], [files("l1-1", "l2-1"), files("r-1")])    # a number twice in a camera
 
 
 def test_atomic_path_keeps_old_file_on_failure(tmp_path):
