@@ -84,8 +84,8 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
     meta = {"producer": "heartcv model simulate", "seed": seed, "model": str(model_file),
             "inputs_hash": {"model": file_hash(model_file)}, "stiffness_cycle": stiffness_cycle}
     write_measurements(output, to_measurements(sim, meta))
-    if truth_path:
-        write_truth(truth_path, sim, meta)
+    if truth_path:   # the measurement file it belongs with: heartcv report refuses it beside another one
+        write_truth(truth_path, sim, dict(meta, measurements_hash=file_hash(output)))
     summary = {"frames": int(sim.times.size), "points": int(sim.reference.shape[0]),
                "duration_s": float(sim.times[-1]), "output": output, "truth": truth_path,
                "peak_displacement_m": sim.peak_displacement_m,

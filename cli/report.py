@@ -73,8 +73,12 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
             truth["notes"].append(f"{label}: the estimate file records no filtered positions (written before "
                                   "heartcv track recorded them); truth error of the one-step predictions only")
     fit_frames = _fit_frames(runs)
+    if truth is not None and truth["left_out"] >= set(runs):    # no run's sequence: its parameters drawn nowhere
+        truth["theta"] = None
+    theta = ({k: truth["theta"] for k in runs if k not in truth["left_out"]}
+             if truth is not None and truth["theta"] is not None else None)
     compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
-                               truth["theta"] if truth else None, LEVEL, fit_frames,
+                               theta, LEVEL, fit_frames,
                                rng=np.random.default_rng(seed) if resamples else None, resamples=resamples or 100)
     metrics = _metrics_document(runs, compared, noise, noise_source, truth)
     metrics["tracks"] = _track_motion(meas_file, runs)
@@ -367,9 +371,9 @@ def _load_truth(path, runs: dict, allow_mixed: bool, meas_file=None) -> dict:
     from heartcv.tracker.files import InputError
     from heartcv.tracker.io import read_truth
 
-    truth = {"kind": None, "path": path, "positions": {}, "notes": []}
+    truth = {"kind": None, "path": path, "positions": {}, "notes": [], "left_out": set()}
     try:
-        data, _ = read_truth(path)
+        data, tmeta = read_truth(path)
     except InputError as exc:
         if exc.field != "meta.format":
             raise
@@ -383,10 +387,27 @@ def _load_truth(path, runs: dict, allow_mixed: bool, meas_file=None) -> dict:
         _render_truth(truth, data, meta, path, runs, allow_mixed, meas_file)
         return truth
     truth.update(kind="simulation", times=data["times"], theta=data["theta"])
+    made_with = tmeta.get("measurements_hash")      # the measurement file simulated with it (absent in older files)
+    if made_with is not None and meas_file:
+        from heartcv.tracker.io import file_hash
+
+        if file_hash(meas_file) != made_with and _other_simulation(path, meas_file, allow_mixed):
+            truth["notes"].append(f"the truth was simulated with another measurement file than {meas_file}: left out")
+            truth["left_out"] = set(runs)
+            return truth
     for label, r in runs.items():
         est = r["est"]
         if _mismatch(est.times, data["times"], r["path"], path, allow_mixed, "the truth"):
+            truth["left_out"].add(label)
+            truth["notes"].append(f"{label}: other frame times than the truth's: no truth error or true parameters")
             continue
+        measured = (est.meta.get("inputs_hash") or {}).get("measurements")
+        if made_with is not None and measured is not None and measured != made_with:
+            if _other_simulation(path, r["path"], allow_mixed):
+                truth["left_out"].add(label)
+                truth["notes"].append(f"{label}: estimated from another measurement file than the truth was "
+                                      "simulated with: no truth error or true parameters")
+                continue
         P = est.point_ids.size
         if data["positions"].shape[1] != P or not np.array_equal(est.point_ids, np.arange(P)):
             truth["notes"].append(f"{label}: the truth's {data['positions'].shape[1]} points are not the "
@@ -394,6 +415,17 @@ def _load_truth(path, runs: dict, allow_mixed: bool, meas_file=None) -> dict:
             continue
         truth["positions"][label] = data["positions"]
     return truth
+
+
+def _other_simulation(truth_path, other, allow_mixed) -> bool:
+    """A truth simulated with another measurement file than ``other`` was read from (its ``meta.measurements_hash``
+    against the file's hash): exit 2 unless --allow-mixed, then a warning and True (left out)."""
+    msg = (f"{truth_path}: meta.measurements_hash: the truth was simulated with another measurement file than "
+           f"{other} (another seed or model?)")
+    if not allow_mixed:
+        raise BadInput(f"{msg}; use --allow-mixed to go on without it")
+    log.warning("%s; the truth left out", msg)
+    return True
 
 
 def _render_truth(truth, data, meta, path, runs, allow_mixed, meas_file) -> None:
@@ -413,8 +445,10 @@ def _render_truth(truth, data, meta, path, runs, allow_mixed, meas_file) -> None
             raise InputError(path, f"missing arrays {missing} (a truth with vertex positions needs them for the "
                                    "truth error)")
     truth.update(kind="render", times=data["times"], theta=data["theta"])
-    for r in runs.values():
-        _mismatch(r["est"].times, data["times"], r["path"], path, allow_mixed, "the truth")
+    for label, r in runs.items():
+        if _mismatch(r["est"].times, data["times"], r["path"], path, allow_mixed, "the truth"):
+            truth["left_out"].add(label)
+            truth["notes"].append(f"{label}: other frame times than the truth's: no truth error or true parameters")
     _render_truth_positions(truth, data, meta, runs, meas_file)
 
 
@@ -457,6 +491,8 @@ def _render_truth_positions(truth, arrays, tmeta, runs, meas_file):
     for label, r in runs.items():
         est = r["est"]
         T = est.meta.get("patch_from_rig")
+        if label in truth["left_out"]:
+            continue
         if T is None or est.times.size != meas.n_frames:
             note(f"{label}: no patch_from_rig in the estimate file (or another sequence); no truth error")
             continue

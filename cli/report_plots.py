@@ -440,7 +440,7 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
             "--duration); the predictions before it are in-sample." if fit_end is not None else ""))
     for j in _shown_parameters(runs, ps, truth):
         name = NAMES[j]
-        tr = (truth["times"], truth["theta"][:, j]) if truth is not None else None
+        tr = (truth["times"], truth["theta"][:, j]) if truth is not None and truth["theta"] is not None else None
         fig = parameter_figure(name, UNITS[j], {k: (p["times"], p["theta"][:, j], p["theta_std"][:, j])
                                                    for k, p in ps.items() if np.isfinite(p["theta"][:, j]).any()},
                                colors, tr, phases)   # the baselines have no parameters
@@ -503,7 +503,7 @@ def _shown_parameters(runs, ps, truth) -> list:
         estimated = any(name in r["est"].meta.get("estimated", []) or (ps[k]["theta_std"][:, j] > 0).any()
                         or name in (r["est"].meta.get("held_parameters") or []) for k, r in runs.items())
         off = False
-        if truth is not None:
+        if truth is not None and truth["theta"] is not None:
             tv = np.asarray(truth["theta"][:, j], float)
             scale = max(np.abs(tv).max(), 1e-300)
             off = np.ptp(tv) > 1e-9 * scale or any(

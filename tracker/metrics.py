@@ -611,8 +611,8 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
         In report order; the first is the reference of the sequence summary.
     truth_positions : dict of {label: ndarray (K, P, 3)}, optional
         True positions of each run's points where known (frame of the predictions, m).
-    truth_theta : ndarray (K, 5), optional
-        True parameters per frame (SI).
+    truth_theta : ndarray (K, 5) or dict of {label: ndarray (K, 5)}, optional
+        True parameters per frame (SI): of every run, or by run (a run missing from the dict has none).
     level : float
         Level of the NIS bands.
     fit_frames : int, optional
@@ -642,8 +642,10 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
     """
     truth_positions = truth_positions or {}
     per = {}
+    by_run = truth_theta if isinstance(truth_theta, dict) else {label: truth_theta for label in runs}
     for label, est in runs.items():
         pos = truth_positions.get(label)
+        truth_theta = by_run.get(label)
         m = estimator_metrics(est, pos, level, fit_frames)
         m["measurement_truth_error_mean_m"] = (pooled_stats(measurement_truth_error_norms(est, pos)[1:])["mean"]
                                                if pos is not None else np.nan)

@@ -155,6 +155,44 @@ def test_mixed_sequences_refused(run):
     assert doc["estimators"]["kf:kf_short"]["completed_steps"] == 16
 
 
+def test_a_truth_of_another_simulation_is_refused(run, tmp_path):
+    """The truth of another seed has the same frame times (it was accepted and its errors reported): the truth file
+    records the measurement file simulated with it (meta.measurements_hash) and the report refuses it beside
+    estimates of another file, or another --measurements (exit 2). With --allow-mixed it is left out: no truth
+    error, no true parameters for that run, a note says why; a truth of other frame times likewise."""
+    from heartcv.tracker.io import file_hash, read_truth
+
+    _ok(main, ["-q", "model", "simulate", PAPER, "--duration", "1", "--seed", "3", "-o", tmp_path / "m3.npz",
+               "--truth", tmp_path / "t3.npz"])
+    assert read_truth(tmp_path / "t3.npz")[1]["measurements_hash"] == file_hash(tmp_path / "m3.npz")
+    assert read_truth(run / "t.npz")[1]["measurements_hash"] == file_hash(run / "m.npz")
+    out = tmp_path / "rep"
+    res = _report([run / "kf.npz", "--truth", tmp_path / "t3.npz", "-o", out])
+    assert res.exit_code == 2 and "meta.measurements_hash: the truth was simulated with another measurement file" \
+        in res.output and not out.exists(), res.output
+    res = _report([run / "kf.npz", "--truth", tmp_path / "t3.npz", "--measurements", run / "m.npz", "-o", out])
+    assert res.exit_code == 2 and "m.npz" in res.output and not out.exists()
+    res = _report([run / "kf.npz", "--truth", tmp_path / "t3.npz", "-o", out, "--allow-mixed", "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    (e,) = doc["estimators"].values()
+    assert e["truth_error_mean_m"] is None and e["theta_truth_final"] is None
+    assert any("another measurement file" in n for n in doc["truth"]["notes"])
+    # the truth of the run's own file: its errors
+    res = _report([run / "kf.npz", "--truth", run / "t.npz", "-o", tmp_path / "own", "--json"])
+    assert res.exit_code == 0, res.output
+    (own,) = json.loads(res.stdout)["estimators"].values()
+    assert own["truth_error_mean_m"] > 0 and own["theta_truth_final"] is not None
+    # other frame times, let in: no true parameters either
+    res = _report([run / "kf_short.npz", "--truth", run / "t.npz", "-o", tmp_path / "short", "--allow-mixed",
+                   "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    (e,) = doc["estimators"].values()
+    assert e["theta_truth_final"] is None and e["theta_truth_coverage_2sigma"] is None
+    assert any("other frame times" in n for n in doc["truth"]["notes"])
+
+
 def test_partial_run_and_render_truth(run):
     from dataclasses import replace
 
