@@ -14,8 +14,9 @@ import numpy as np
 __all__ = ["COLORS", "SYMBOLS", "TITLES", "si_scale", "error_figure", "consistency_figure", "save_png"]
 
 # fixed colours per estimator so every figure of a study (and a report) matches
-COLORS = {"ge": "#1f77b4", "ukf": "#d62728", "ekf": "#2ca02c", "kf": "#7f7f7f"}
-_FALLBACK = ("#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf", "#ff7f0e")
+COLORS = {"ge": "#1f77b4", "ukf": "#d62728", "ekf": "#2ca02c", "kf": "#7f7f7f",
+          "hold": "#8c564b", "constvel": "#e377c2", "harmonic": "#bcbd22"}
+_FALLBACK = ("#9467bd", "#17becf", "#ff7f0e", "#8c564b", "#e377c2", "#bcbd22")
 _PREFIXES = {-9: "n", -6: "µ", -3: "m", 0: "", 3: "k", 6: "M", 9: "G"}
 _PREFIXABLE = ("Pa", "m", "s")
 # mathtext symbols of the model parameters (tracker.params.NAMES)

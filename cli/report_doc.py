@@ -57,7 +57,10 @@ def _parameter_rows(doc) -> list:
 
 def _facts(doc) -> list:
     s = doc["sequence"]
+    left = s.get("points_left_out") or 0
     facts = [f"Sequence: {s['frames']} frames over {s['duration_s']:.4g} s, {s['points']} points"
+             + (f" (the measurement file's other {left} left out by the fit's selection: off the patch or seen "
+                "in fewer than two frames)" if left else "")
              + (" (mixed sequences: --allow-mixed)" if s["mixed"] else "") + "."]
     noise = doc["measurement_noise_m"]
     facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']}); "
@@ -69,7 +72,11 @@ def _facts(doc) -> list:
                       ("ratio_ge_to_kf_truth_error", "truth error (filtered)")):
         if doc[key] is not None:
             ci = doc.get(f"{key}_interval") if key.endswith("prediction_error") else None
-            facts.append(f"GE / KF mean {what}: {doc[key]:.3f}" + (
+            ge, kf = doc["estimators"].get("ge") or {}, doc["estimators"].get("kf") or {}
+            steps = (ge.get("completed_steps"), kf.get("completed_steps"))
+            uneven = (f" (over different frames: ge {steps[0]}, kf {steps[1]} completed steps; no paired interval)"
+                      if None not in steps and steps[0] != steps[1] else "")
+            facts.append(f"GE / KF mean {what}: {doc[key]:.3f}" + uneven + (
                 f"; over the observations both predicted {_interval(ci)}" if ci else "") + ".")
     facts += _hold_ratio_facts(doc)
     if doc.get("difference_ge_minus_kf_log_likelihood_per_point") is not None:

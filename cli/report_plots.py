@@ -414,10 +414,15 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
 
     from .plots import COLORS, save_png
 
-    colors, fallback = {}, iter(("#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf", "#ff7f0e") * 10)
+    # an estimator's own colour (the baselines' too, so a report's colours do not depend on the order of its
+    # files); a second run of the same estimator, or an unknown one, the next colour no run uses
+    colors = {}
+    fallback = ("#9467bd", "#17becf", "#ff7f0e", "#8c564b", "#e377c2", "#bcbd22", "#1f77b4", "#d62728", "#2ca02c")
     for label, r in runs.items():
         c = COLORS.get(r["est"].estimator)
-        colors[label] = c if c and c not in colors.values() else next(fallback)
+        if not c or c in colors.values():
+            c = next((f for f in fallback if f not in colors.values()), fallback[len(colors) % len(fallback)])
+        colors[label] = c
     ps = {k: m["per_step"] for k, m in per.items()}
     out = []
 
@@ -459,7 +464,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
                    for w in (rate_windows or []) if w.get("frequency_hz") is not None] if key == "heart_rate" else []
             save(parameter_figure(title, unit, rates, colors, reference=ref or None), f"{key}.png",
                  f"{title.capitalize()}: the GE's sampled posterior mean with its ±2σ band where it samples the "
-                 "rate; a constant (the fit's, with its standard error) for the runs that hold it."
+                 "rate; a constant for the runs that hold it (the fit's, or harmonic's from the tracks' spectrum; "
+                 "with its standard error where one is known)."
                  + (" Black: the tracks' own heart rate in windows of the measurements (heartcv fit's estimator, "
                     "no model; the bar spans the window, ±2σ its standard error)." if ref else ""))
     with_nis = {k: (p["times"], p["nis"], p["nis_dof"], per[k]["nis_mean"] / per[k]["nis_mean_dof"])

@@ -180,6 +180,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
                   files=[("-o/--output", output, ("heartcv.estimates",)),
                          ("the partial file of -o", part, ("heartcv.estimates",))])
     meas = read_measurements(measurements)
+    file_ids = np.asarray(meas.point_ids)
     m = load_model(model_file)
     fitted = read_parameters(params_file) if params_file is not None else None
     options = _joint_options(m, model_file, estimator, nodes, truncation, joseph)
@@ -220,6 +221,9 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         if fitted is not None and meas.meta.get("late_points"):
             meas, heldout = _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file,
                                                        model_file, full_block or input_block, meta)
+    left_out = np.setdiff1d(file_ids, np.asarray(meas.point_ids))
+    if left_out.size:   # the fit's selection (off the patch, seen once; late held-out tracks without a reference)
+        meta["left_out_points"] = [int(i) for i in left_out]
     rate = _fitted_heart_rate(fitted)
     if estimator in BASELINES:
         use_fit = estimator == "harmonic" and heart_rate_hz is None and rate

@@ -252,10 +252,11 @@ def _check_report_meta(meta, path, K):
         meta["parameter_overdispersion"] = od
     if meta.get("fit_frames") is not None:
         meta["fit_frames"] = get_field(meta, "fit_frames", "int", path, lo=1, hi=max(K, 1), prefix="meta.")
-    ids = meta.get("heldout_points")
-    if ids is not None and (not isinstance(ids, list)
-                            or any(isinstance(i, bool) or not isinstance(i, int) or abs(i) >= 2**63 for i in ids)):
-        raise InputError(path, "a list of point ids (integers) expected", "meta.heldout_points")
+    for key in ("heldout_points", "left_out_points"):
+        ids = meta.get(key)
+        if ids is not None and (not isinstance(ids, list) or any(
+                isinstance(i, bool) or not isinstance(i, int) or abs(i) >= 2**63 for i in ids)):
+            raise InputError(path, "a list of point ids (integers) expected", f"meta.{key}")
 
 
 def read_estimates(path) -> EstimateSet:
@@ -266,6 +267,11 @@ def read_estimates(path) -> EstimateSet:
     if estimator not in ESTIMATORS:
         raise InputError(path, f"one of {list(ESTIMATORS)} expected, got {estimator!r}", "meta.estimator")
     steps = get_field(meta, "completed_steps", "int", path, lo=0, hi=K, prefix="meta.")
+    if (np.diff(data["times"]) <= 0).any():
+        raise InputError(path, "strictly increasing frame times expected", "times")
+    for key in ("nis_dof", "truncation_events"):
+        if (data[key] < 0).any():
+            raise InputError(path, "counts (integers >= 0) expected, got a negative value", key)
     M = data["phi_mean"].shape[1] if "phi_mean" in data else 0
     est = _meta_str_list(meta, "estimated", path, M if "phi_mean" in data else None)
     from .params import NAMES

@@ -680,6 +680,7 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
     return {
         "per_run": per,
         "sequence": {"frames": int(t.size), "duration_s": float(t[-1] - t[0]), "points": int(first.point_ids.size),
+                     "points_left_out": len(first.meta.get("left_out_points") or []),
                      "dt_s": float(np.median(np.diff(t))) if t.size > 1 else None,
                      "mixed": any(sequence_mismatch(first, est) is not None for est in runs.values())},
         "measurement_truth_error_mean_m": own[0] if own else None,

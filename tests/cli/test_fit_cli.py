@@ -217,6 +217,7 @@ def test_rig_frame_fit_registers_and_track_reuses_it(files, tmp_path, fake_regis
     e = read_estimates(est)
     assert fake_registration[0] == [10, "apply", "apply"]
     assert e.point_ids.tolist() == m.point_ids[1:].tolist() and np.array_equal(e.theta[0], p.theta)
+    assert e.meta["left_out_points"] == [int(m.point_ids[0])]      # the point the registration put off the patch
     # the same parameters on the patch-frame file: registration not applied, with a warning
     r = CliRunner().invoke(main, ["track", files["patch"], "--model", PAPER, "--params", str(out), "-o",
                                   str(tmp_path / "e2.npz")])

@@ -67,7 +67,7 @@ def test_end_to_end(run):
     truth, _ = read_truth(run / "t.npz")
     meas = read_measurements(run / "m.npz")
     assert doc["sequence"] == {"frames": 31, "duration_s": pytest.approx(1.0), "points": 14,
-                               "dt_s": pytest.approx(1 / 30), "mixed": False}
+                               "dt_s": pytest.approx(1 / 30), "mixed": False, "points_left_out": 0}
     assert doc["measurement_noise_m"] == pytest.approx(1e-4, rel=1e-12)  # paper_patch: 0.1 mm per coordinate
     assert doc["truth"]["kind"] == "simulation" and doc["truth"]["positions"]
     for name in ("ge", "kf"):
@@ -223,6 +223,9 @@ def test_partial_run_and_render_truth(run):
     assert doc["truth"]["kind"] == "render" and not doc["truth"]["positions"]
     assert g["truth_error_mean_m"] is None and "--measurements" in doc["truth"]["notes"][0]
     assert "truth_error.png" not in doc["figures"] and "parameter_E.png" in doc["figures"]
+    assert "GE / KF mean prediction error: " in (run / "rep_part" / "summary.md").read_text()
+    assert "(over different frames: ge 20, kf 31 completed steps; no paired interval)" in \
+        (run / "rep_part" / "summary.md").read_text()
 
 
 def test_estimate_file_without_filtered_positions(run):

@@ -147,3 +147,21 @@ def test_estimate_file_round_trips_filtered(tmp_path, kf_run):
     assert np.isnan(m["truth_error_mean_m"]) and m["prediction_truth_error_mean_m"] == 0.0
     with pytest.raises(ValueError, match="filtered"):
         replace(est, filtered=est.filtered[:, :3])
+
+
+def test_estimate_file_with_bad_times_or_negative_counts_is_refused(tmp_path, kf_run):
+    """Frame times that do not increase, and a negative NIS degree of freedom or truncation count: exit-2 errors
+    naming the file and the array (both were read and reported)."""
+    from heartcv.tracker.files import InputError
+
+    _, _, est = kf_run
+    write_estimates(tmp_path / "kf.npz", est)
+    with np.load(tmp_path / "kf.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    for key, edit in (("times", lambda a: a[::-1].copy()), ("nis_dof", lambda a: a - 10 ** 6),
+                      ("truncation_events", lambda a: a - 1)):
+        bad = dict(arrays, **{key: edit(arrays[key])})
+        np.savez(tmp_path / f"bad_{key}.npz", **bad)
+        with pytest.raises(InputError) as exc:
+            read_estimates(tmp_path / f"bad_{key}.npz")
+        assert exc.value.field == key and str(tmp_path / f"bad_{key}.npz") in str(exc.value)
