@@ -216,7 +216,8 @@ def _summarise(result, output, as_json, warnings=()):
     rig_frame = c0.name if np.array_equal(c0.cam_from_rig, np.eye(4)) else "custom"
     summary = {"output": output, "producer": meta["producer"], "cameras": cams, "baselines_m": result.baselines(),
                "rig_frame": rig_frame}
-    for key in ("source_format", "source_files", "source_rig_frame", "units_conversion", "orthonormalised"):
+    for key in ("source_format", "source_files", "source_rig_frame", "units_conversion", "orthonormalised",
+                "rectified", "focal_px", "baseline_m", "principal_point"):
         if key in meta:
             summary[key] = meta[key]
     if warnings:

@@ -232,8 +232,8 @@ def calibrate_rig_detailed(detections, spec, image_sizes, *, names=None, view_na
     free_dist = np.stack([distortion_terms(cv if weak_data_rules else 1.0, dist_size) for cv in coverage])
     intr, full = [], []
     for c, (dets, size, n) in enumerate(zip(detections, image_sizes, names)):
-        say(f"{n}: single-camera calibration ({int(sum(usable_view(d, spec) for d in dets))} views, "
-            f"coverage {100 * coverage[c]:.0f} %)")
+        say(f"{n}: {'board poses with its given intrinsics held' if hold[c] else 'single-camera calibration'} "
+            f"({int(sum(usable_view(d, spec) for d in dets))} views, coverage {100 * coverage[c]:.0f} %)")
         kw = dict(dist_size=dist_size, max_view_rms=max_view_rms, outlier_factor=outlier_factor,
                   min_views=min_views, name=n)
         if hold[c]:
@@ -341,7 +341,8 @@ def calibrate_rig_detailed(detections, spec, image_sizes, *, names=None, view_na
     free = np.r_[free_intr.ravel(), np.ones(6 * (n_cam - 1), bool)]
 
     # 5. uncertainty checked on views left out; weakly determined parameters named
-    say("k-fold check of the uncertainties")
+    if folds >= 3:
+        say("k-fold check of the uncertainties")
     check = _kfold(detections, used, spec, dist_size, ba, vidx, free, prior_mean, prior_sigma, weights_cv, folds)
     warnings += _weak_parameters(ba, names, image_sizes, free_intr, prior_sigma, dist_size)
     return _result(prob, ba, names, view_names, image_sizes, used, view_rms, full, spec, dist_size,

@@ -315,12 +315,42 @@ def write_target(path, spec: TargetSpec, *, png=None, pdf=None, px_per_m=None, i
     write_yaml(path, d, header)
 
 
+_TARGET_IMAGE_NUMBERS = {"dpi": 0, "px_per_m": 0, "square_px": 0, "margin_m": None}
+_TARGET_IMAGE_PAIRS = ("size_px", "page_size_m")
+
+
+def _check_target_image(image) -> None:
+    """A target file's ``image`` block (docs/formats.md §7.3; informative): known keys, finite positive numbers."""
+    if not isinstance(image, dict):
+        raise InputError(None, "a mapping expected", "image")
+    known = set(_TARGET_IMAGE_NUMBERS) | set(_TARGET_IMAGE_PAIRS) | {"png", "pdf"}
+    for key, v in image.items():
+        if key not in known:
+            raise InputError(None, f"unknown key (known: {sorted(known)})", f"image.{key}")
+        if key in ("png", "pdf"):
+            if not isinstance(v, str) or not v:
+                raise InputError(None, f"a file name expected, got {v!r}", f"image.{key}")
+            continue
+        values = v if key in _TARGET_IMAGE_PAIRS else [v]
+        if (key in _TARGET_IMAGE_PAIRS and (not isinstance(v, list) or len(v) != 2)) or not all(
+                _is_num(x) and (x > 0 or (key == "margin_m" and x >= 0)) for x in values):
+            want = "two finite positive numbers" if key in _TARGET_IMAGE_PAIRS else (
+                "a finite number >= 0" if key == "margin_m" else "a finite positive number")
+            raise InputError(None, f"{want} expected, got {v!r}", f"image.{key}")
+
+
 def read_target(path) -> TargetSpec:
     """Read and validate a target file; HeartcvIOError naming the file and the bad field."""
     def from_dict(d):
-        if "image" in d and not isinstance(d["image"], dict):
-            raise InputError(None, "a mapping expected", "image")
-        return TargetSpec.from_dict(d)
+        if "image" in d:
+            _check_target_image(d["image"])
+        spec = TargetSpec.from_dict(d)
+        size = d.get("board_size_m")
+        if size is not None and not (isinstance(size, list) and len(size) == 2 and all(_is_num(v) for v in size)
+                                     and np.allclose(size, spec.board_size_m, rtol=1e-6, atol=0)):
+            raise InputError(None, f"[{spec.board_size_m[0]:g}, {spec.board_size_m[1]:g}] (the board the other keys "
+                                   f"describe) expected, got {size!r}", "board_size_m")
+        return spec
 
     return _read_typed_yaml(path, "target file", TARGET_FORMAT, from_dict)
 

@@ -95,9 +95,9 @@ class TargetSpec:
         # OpenCV: a ChArUco board needs >= 3 squares each way for an inner corner grid; findChessboardCorners(SB)
         # needs more than 2 inner corners each way
         if min(sq) < 3:
-            raise InputError(None, f"{what}: at least 3 each way for a {self.type}, got {sq[0]}x{sq[1]}", key)
+            raise InputError(None, f"at least 3 {what} each way for a {self.type}, got {sq[0]}x{sq[1]}", key)
         if max(sq) > MAX_SQUARES:
-            raise InputError(None, f"{what}: at most {MAX_SQUARES} each way, got {sq[0]}x{sq[1]}", key)
+            raise InputError(None, f"at most {MAX_SQUARES} {what} each way, got {sq[0]}x{sq[1]}", key)
         if not (_is_real(self.square_m) and 1e-4 <= self.square_m < 1):
             raise InputError(None, f"square size: metres in [0.0001, 1) expected, got {_show(self.square_m)}",
                              "square_m")

@@ -309,6 +309,15 @@ def test_target_file_and_images(tmp_path):
     ("format: heartcv.rig\n", "format: 'heartcv.target' expected"),
     ("type: charuco\nsquares: [3, 3]\nsquare_m: 0.01\nmarker_m: 0.02\ndictionary: DICT_4X4_50\n", "marker size"),
     ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: t.png\n", "image: a mapping"),
+    # the informative image block and board size, hand-edited: refused, not carried on (NaN is refused everywhere)
+    ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {px_per_m: .nan}\n",
+     "image.px_per_m: a finite positive number expected"),
+    ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {colour: blue}\n", "image.colour: unknown key"),
+    ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {size_px: [10]}\n",
+     "image.size_px: two finite positive numbers"),
+    ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {png: 3}\n", "image.png: a file name"),
+    ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nboard_size_m: [9, 9]\n",
+     r"board_size_m: \[0.04, 0.04\] \(the board the other keys describe\) expected"),
     ("[1, 2]\n", "mapping expected"),
 ])
 def test_read_target_errors(tmp_path, text, match):
