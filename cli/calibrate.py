@@ -73,8 +73,9 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     FOLDER holds one sub-folder of images per camera (cam0/, cam1/, ...; the same file name in two folders is
     the same instant) or one video file per camera (frames with the same index are the same instant); with
     --packed, one video or folder of images whose frames hold all the views. Cameras are taken in natural name
-    order (--packed: in packing order); the first is the rig frame. Unreadable images, and images whose size
-    differs from the rest of their camera, are named in a warning and skipped.
+    order (--packed: in packing order); the first is the rig frame. Unreadable images, and a few images whose
+    size differs from the rest of their camera, are named in a warning and skipped (more than 10 % of another
+    size: exit 2).
 
     Exit 1 when the calibration fails: the target is found in no image, a camera has too few usable views
     (the counts per camera are given), or a camera shares no view with the others. Exit 2 for bad input and for
@@ -307,7 +308,42 @@ def _find_cameras(folder: Path):
             raise InputError(folder, str(exc), "FOLDER") from None
         if by == "number":
             log.info("%s: the cameras' files share no name; views paired by the last number in the names", folder)
+        for name, _, fs in cams:
+            _check_size_census(name, fs)
     return cams
+
+
+def _check_size_census(name, files) -> None:
+    """A camera's images in more than one size, the others more than :data:`OTHER_SIZE_FRACTION` of them (at
+    least 2): exit 2 before any detection (intrinsics hold for one image size; the folder mixes recordings). Fewer
+    are skipped image by image, with a warning each. Unreadable headers are left to the detection, which names
+    them."""
+    from collections import Counter
+
+    from PIL import Image
+
+    from heartcv.measure_data import OTHER_SIZE_FRACTION
+    from heartcv.tracker.files import InputError
+
+    sizes = {}
+    for f in files:
+        try:
+            with Image.open(f) as im:
+                sizes[f] = tuple(im.size)
+        except Exception:       # noqa: BLE001 -- unreadable: named when it is read for detection
+            continue
+    counts = Counter(sizes.values())
+    if len(counts) < 2:
+        return
+    (main, n_main), *_ = counts.most_common()
+    others = sum(counts.values()) - n_main
+    if others >= 2 and others > OTHER_SIZE_FRACTION * sum(counts.values()):
+        first = next(f for f, s in sizes.items() if s != main)
+        shown = ", ".join(f"{w}x{h} ({n})" for (w, h), n in counts.most_common())
+        raise InputError(first, f"camera {name}'s {sum(counts.values())} images come in sizes {shown}; more than "
+                                f"{OTHER_SIZE_FRACTION:.0%} of another size is not a few bad images: a calibration "
+                                "holds for one image size (the folder mixes recordings; give each its own)",
+                         "images")
 
 
 def _packing(packed, packed_cameras, timestamps_file):

@@ -102,6 +102,27 @@ def test_bad_images_named_and_skipped(tmp_path, target):
 
 
 @needs_data
+def test_a_camera_of_mixed_image_sizes_is_refused_before_detection(tmp_path, target):
+    """Three of a camera's six images at another size (two recordings in one folder): exit 2 naming the camera,
+    the sizes and a file, before any detection (it calibrated to the majority's size, or the minority's, with a
+    warning per image); one such image stays a skipped view (above)."""
+    import cv2
+
+    folder = _camera_folder(tmp_path / "calib", PAIRS[:6])
+    files = sorted((folder / "cam1").iterdir())
+    for f in files[:3]:
+        small = cv2.resize(cv2.imread(str(f)), (320, 240))
+        f.unlink()
+        cv2.imwrite(str(f.with_suffix(".png")), small)
+    out = tmp_path / "rig.yaml"
+    res = _run("calibrate", folder, "--target", target, "-o", out)
+    assert res.exit_code == 2 and not out.exists(), res.output
+    assert "camera cam1's 6 images come in sizes 640x480 (3), 320x240 (3)" in res.output \
+        or "camera cam1's 6 images come in sizes 320x240 (3), 640x480 (3)" in res.output, res.output
+    assert "detecting" not in res.stderr
+
+
+@needs_data
 def test_failures_exit_1(tmp_path, target):
     from heartcv.io import write_target
 
