@@ -139,6 +139,14 @@ def test_failures_exit_1(tmp_path, target):
     assert not (tmp_path / "w.yaml").exists()
 
     split = _camera_folder(tmp_path / "split", None, [PAIRS[:5], PAIRS[5:10]])
+    res = _run("calibrate", split, "--target", target, "-o", tmp_path / "s.yaml")    # no instant in common
+    assert res.exit_code == 2 and "camera(s) cam1 ('" in res.output and "share no file name (stem) with cam0" \
+        in res.output, res.output
+    import cv2
+
+    for cam, names in (("cam0", PAIRS[5:10]), ("cam1", PAIRS[:5])):      # the instants, without the board
+        for n in names:
+            cv2.imwrite(str(split / cam / f"{n}.jpg"), np.full((480, 640, 3), 128, np.uint8))
     res = _run("calibrate", split, "--target", target, "-o", tmp_path / "s.yaml")
     assert res.exit_code == 1 and "cameras cam1 share no usable view with cam0" in res.stderr
 
@@ -394,8 +402,12 @@ def test_synthetic_target_does_not_match(tmp_path, syn_set, case):
 
 def test_synthetic_cameras_without_shared_view(tmp_path, syn_set, syn_target):
     """cam1 and cam2 see the board together, never with cam0: exit 1 naming both; nothing written."""
+    import cv2
+
     views = [range(0, 6), range(6, SYN_VIEWS), range(6, SYN_VIEWS)]
     folder = _syn_folder(tmp_path / "calib", syn_set, views)
+    for v in range(6, SYN_VIEWS):   # cam0 took these instants too, without the board in view
+        cv2.imwrite(str(folder / "cam0" / f"{v:02d}.png"), np.full((480, 640), 128, np.uint8))
     out_dir = tmp_path / "out"
     res = _run("calibrate", folder, "--target", syn_target, "-o", out_dir / "rig.yaml")
     assert res.exit_code == 1, res.output
