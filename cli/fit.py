@@ -292,6 +292,7 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
 
     import numpy as np
 
+    from heartcv.tracker.files import InputError
     from heartcv.tracker.fit import UnknownInputProblem
     from heartcv.tracker.fit import fit as run_fit
     from heartcv.tracker.model import build_model
@@ -315,6 +316,10 @@ def _fit_unknown_input(m, meas, seed, frames, starts, max_evaluations, harmonics
     H = HARMONICS if harmonics is None else harmonics
     field_degree = FIELD_DEGREE if field_degree is None else int(field_degree)
     K = meas.n_frames if frames is None else min(frames, meas.n_frames)
+    if K < 2:       # the file's problem, as the fit with a recorded pressure says it (exit 2)
+        raise InputError(None, f"a fit needs at least 2 frames, the file has {meas.n_frames}", "times")
+    if not (np.isfinite(meas.positions[:K]).all(axis=2).sum(axis=0) >= 2).any():
+        raise InputError(None, f"no point is seen in two of the first {K} frames", "positions")
     try:
         if heart_rate_hz is None:
             hr = estimate_heart_rate(meas.times[:K], meas.positions[:K], H, band, prominent=True)

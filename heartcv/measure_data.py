@@ -230,9 +230,24 @@ def inputs_at_frames(columns: dict, times) -> tuple[tuple, tuple, np.ndarray]:
         if not np.isfinite(v).all():
             raise InputError(None, "non-finite values", f"column {name!r}")
         base, unit, factor = split_unit(name)
-        if not unit and base.lower().startswith("pressure"):
+        low = base.lower()
+        if not unit and low.startswith("pressure"):
             raise InputError(None, "a pressure column needs its unit in its name: pressure_mmhg, pressure_kpa or "
                                    "pressure_pa (without one it would be read as pascals)", f"column {name!r}")
+        if not unit and low.startswith("active_tension"):
+            raise InputError(None, "an active tension column needs its unit in its name: active_tension_kpa or "
+                                   "active_tension_pa (without one it would be read as pascals)", f"column {name!r}")
+        if not unit and low.startswith("respiration_"):
+            raise InputError(None, f"a respiration column needs its unit in its name: {base}_mm or {base}_m "
+                                   "(without one it would be read as metres)", f"column {name!r}")
+        if unit and ((low.startswith(("pressure", "active_tension")) and unit != "Pa")
+                     or (low.startswith("respiration_") and unit != "m")):
+            raise InputError(None, f"a {'respiration' if low.startswith('respiration_') else 'load'} column in "
+                                   f"{unit}: " + ("metres expected (_m, _mm)" if low.startswith("respiration_")
+                                                  else "pascals expected (_pa, _kpa, _mmhg)"), f"column {name!r}")
+        if base in names:
+            raise InputError(None, f"input {base!r} given twice (as {name!r} and an earlier column): one column "
+                                   "per input", f"column {name!r}")
         names.append(base)
         units.append(unit)
         vals.append(np.interp(times, t, v) * factor)

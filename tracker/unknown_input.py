@@ -151,6 +151,8 @@ def filled_tracks(times, positions, min_seen=0.9):
     filled by linear interpolation, detrended: (K, 3 P)."""
     y = np.asarray(positions, float)
     K = y.shape[0]
+    if K < 2:   # no motion in one frame (and no line through one sample)
+        return np.zeros((K, 0)), 0
     seen = np.isfinite(y[..., 0])
     use = np.flatnonzero(seen_share(y) >= min_seen)
     k = np.arange(K)

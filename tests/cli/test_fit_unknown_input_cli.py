@@ -902,3 +902,29 @@ def test_a_fast_breath_needs_its_band(tmp_path):
     assert res.exit_code == 2 and "--respiration-band applies to" in res.output, res.output
     res = _track_with_band(path, params, "respiration", [0.1, 0.7], tmp_path)
     assert res.exit_code == 2 and "estimated_input.respiration.band_hz" in res.output, res.output
+
+
+def test_one_frame_or_no_point_seen_twice_exits_2(tmp_path, blind_file):
+    """A measurement file of one instant (a valid measure output) or one where no point is seen in two frames: the
+    estimated-input fit says so, exit 2 naming the file and field, with or without a given heart rate (it was an
+    internal error, 'SVD did not converge', in the heart-rate search)."""
+    from heartcv.tracker.tracking import first_frames
+    from heartcv.tracker.unknown_input import filled_tracks
+
+    m = read_measurements(blind_file)
+    one = tmp_path / "one.npz"
+    write_measurements(one, first_frames(m, 1))
+    for extra in ([], ["--heart-rate-hz", "1.0"]):
+        res = CliRunner().invoke(main, ["fit", str(one), "--model", PAPER, "-o", str(tmp_path / "p.yaml")] + extra)
+        assert res.exit_code == 2, res.output
+        assert f"{one}: times: a fit needs at least 2 frames, the file has 1" in res.output
+        assert "internal error" not in res.output and not (tmp_path / "p.yaml").exists()
+    pos = np.full_like(m.positions, np.nan)
+    for p in range(m.n_points):       # every point seen once, in its own frame
+        pos[p % m.n_frames, p] = m.positions[p % m.n_frames, p]
+    once = tmp_path / "once.npz"
+    write_measurements(once, dataclasses.replace(m, positions=pos))
+    res = CliRunner().invoke(main, ["fit", str(once), "--model", PAPER, "-o", str(tmp_path / "p.yaml")])
+    assert res.exit_code == 2 and "positions: no point is seen in two of the first" in res.output, res.output
+    Y, n = filled_tracks(m.times[:1], m.positions[:1])
+    assert Y.shape == (1, 0) and n == 0

@@ -318,6 +318,20 @@ def test_inputs_at_frames_interpolates_in_si_units():
     ({"time_s": np.array([0.0, 1.0]), "Pressure_psi": np.array([1.5, 2.3])},
      "column 'Pressure_psi': a pressure column needs its unit in its name: pressure_mmhg, pressure_kpa or "
      "pressure_pa (without one it would be read as pascals)"),
+    # the model's other inputs likewise (a breathing column in mm was read as metres: 1000 x too large)
+    ({"time_s": np.array([0.0, 1.0]), "respiration_x": np.array([1.0, 2.0])},
+     "column 'respiration_x': a respiration column needs its unit in its name: respiration_x_mm or respiration_x_m "
+     "(without one it would be read as metres)"),
+    ({"time_s": np.array([0.0, 1.0]), "active_tension": np.array([1.0, 2.0])},
+     "column 'active_tension': an active tension column needs its unit in its name: active_tension_kpa or "
+     "active_tension_pa (without one it would be read as pascals)"),
+    ({"time_s": np.array([0.0, 1.0]), "respiration_y_kpa": np.array([1.0, 2.0])},
+     "column 'respiration_y_kpa': a respiration column in Pa: metres expected (_m, _mm)"),
+    ({"time_s": np.array([0.0, 1.0]), "pressure_mm": np.array([1.0, 2.0])},
+     "column 'pressure_mm': a load column in m: pascals expected (_pa, _kpa, _mmhg)"),
+    ({"time_s": np.array([0.0, 1.0]), "pressure_mmhg": np.array([80.0, 90.0]), "pressure_kpa": np.ones(2)},
+     "column 'pressure_kpa': input 'pressure' given twice (as 'pressure_kpa' and an earlier column): one column "
+     "per input"),
 ])
 def test_inputs_at_frames_refuses(cols, message):
     from heartcv.measure_data import inputs_at_frames
