@@ -153,6 +153,11 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     if overlay_dir is not None:
         from .measure_overlay import check_overlay_dir
 
+        if seq.is_dir() and Path(overlay_dir).resolve().is_relative_to(seq.resolve()):
+            # its images would read as another camera (or another camera's frames) the next time
+            raise InputError(overlay_dir, f"inside SEQUENCE ({seq}): its images would be read as a camera's by the "
+                                          "next measure or calibrate of that folder; choose a folder outside it",
+                             "--overlay")
         check_overlay_dir(overlay_dir)
     elif overlay_video:
         raise BadInput("--overlay-video: only with --overlay DIR")
@@ -245,9 +250,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
                                            for k, c in run.repeated if names[c] == n]
                                        for n in names if any(names[c] == n for _, c in run.repeated)}
     if grid is not None:
-        sizing = dict(sizing or {}, frame_grid={"interval_s": grid[2], "frames": int(grid[1].size),
-                                                "missing_frames": int(grid[1].size - len(times)),
-                                                "offset_max_intervals": float(np.abs(grid[3]).max())})
+        sizing = dict(sizing or {}, frame_grid=mset.meta["frame_grid"])
     if csv_file:
         _write_csv(csv_file, mset, res.uv if grid is None else expand_to_grid(res.uv, grid[0], grid[1].size, np.nan),
                    names)
@@ -876,7 +879,8 @@ def _measurement_set(res, ref_cam, times, inputs, backend, source, frame_names, 
         slots[index] = list(frame_names)
         meta.update(frame_names=[str(n) for n in slots],
                     reference_frame_index=[int(index[b]) for b in res.birth_frame],
-                    frame_grid={"interval_s": grid[2], "measured_frames": int(len(index)),
+                    frame_grid={"interval_s": grid[2], "frames": int(G), "measured_frames": int(len(index)),
+                                "missing_frames": int(G - len(index)),
                                 "offset_max_intervals": float(np.abs(grid[3]).max())})
     return MeasurementSet(times=times, point_ids=res.point_ids, reference=res.reference, inputs=in_values,
                           input_names=in_names, input_units=in_units, frame="rig", meta=meta, **arrays)

@@ -622,6 +622,7 @@ def test_jittered_and_dropped_frames_are_put_on_a_uniform_grid(case, tmp_path):
     g = read_measurements(case["out"] / "g.npz")
     assert g.n_frames == FRAMES and np.allclose(np.diff(g.times), s["frame_grid"]["interval_s"], rtol=1e-9)
     assert not np.isfinite(g.positions[3]).any() and not g.views[3].any() and g.meta["frame_names"][3] == "(missing)"
+    assert g.meta["frame_grid"] == s["frame_grid"] and s["frame_grid"]["measured_frames"] == FRAMES - 1
     (seq / "timestamps.csv").unlink()
     res = _measure(case, "--fps", 30, out=case["out"] / "u.npz")
     assert res.exit_code == 0, res.output

@@ -149,6 +149,11 @@ def test_dense_and_overlay(pair, tmp_path):
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     res, out2 = _measure(pair, tmp_path / "mine", "--overlay", tmp_path / "mine")
     assert res.exit_code == 2 and (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+    # nor a folder inside the sequence, whose images the next run would read as a camera's
+    before = sorted(p.name for p in (pair / "seq").iterdir())
+    res, _ = _measure(pair, tmp_path, "--overlay", pair / "seq" / "ov")
+    assert res.exit_code == 2 and "--overlay: inside SEQUENCE" in res.output, res.output
+    assert sorted(p.name for p in (pair / "seq").iterdir()) == before
 
 
 def test_dense_measures_one_field_of_interlaced_frames(pair, tmp_path):
