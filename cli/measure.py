@@ -241,6 +241,12 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     hp = highpass * (sizing or {}).get("size_factor", 1.0) * (sizing or {}).get("reduction", 1.0)
     mset = _measurement_set(res, rig.cameras[ref], file_times, (in_names, in_units, in_values), be.name, source,
                             instant_names, ref, hp, rig_file, inputs_path, grid)
+    from heartcv.io import file_hash
+
+    if mask_file:   # the other files the measurement depends on (docs/cli.md §1.4 provenance)
+        mset.meta["inputs_hash"]["mask"] = file_hash(mask_file)
+    if fps is None and (seq / "timestamps.csv").is_file():
+        mset.meta["inputs_hash"]["timestamps"] = file_hash(seq / "timestamps.csv")
     if (sizing or {}).get("vertical_offsets_px"):
         mset.meta["rig_vertical_offsets_px"] = dict(sizing["vertical_offsets_px"])
     if (sizing or {}).get("epipolar_px"):

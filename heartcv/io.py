@@ -1142,18 +1142,19 @@ def read_timestamps(path, frame_names) -> np.ndarray:
     count or name mismatch or times that do not increase."""
     cols, _ = read_inputs_csv_columns(path, numeric_except=("frame",))
     if "time_s" not in cols:
-        raise HeartcvIOError(path, f"a 'time_s' column expected, got {list(cols)}")
+        raise HeartcvIOError(path, f"a 'time_s' column expected, got {list(cols)}", "time_s")
     t = np.asarray(cols["time_s"], float)
     if t.size != len(frame_names):
-        raise HeartcvIOError(path, f"{t.size} rows for {len(frame_names)} frames")
+        raise HeartcvIOError(path, f"{t.size} rows for the sequence's {len(frame_names)} instants (one row per "
+                                   "instant of the recording, --start and --frames notwithstanding)", "time_s")
     if "frame" in cols:
         names = [str(n) for n in cols["frame"]]
         if names != [str(n) for n in frame_names]:
             bad = next(i for i, (a, b) in enumerate(zip(names, frame_names)) if a != str(b))
             raise HeartcvIOError(path, f"row {bad + 1} names frame {names[bad]!r}, the sequence has "
-                                       f"{frame_names[bad]!r} there")
+                                       f"{frame_names[bad]!r} there", "frame")
     if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
-        raise HeartcvIOError(path, "time_s must be finite and strictly increasing")
+        raise HeartcvIOError(path, "finite and strictly increasing values expected", "time_s")
     return t - t[0]
 
 

@@ -164,6 +164,12 @@ def test_fps_given_replaces_timestamps_with_a_warning(case):
     assert res.exit_code == 0, res.output
     assert "timestamps.csv is not read" not in res.stderr
     assert np.allclose(read_measurements(case["out"] / "ts.npz").times, np.asarray(stamps[:3]) - stamps[0])
+    from heartcv.io import file_hash
+
+    # provenance: the timestamps read are hashed with the other inputs; with --fps they were not read
+    assert read_measurements(case["out"] / "ts.npz").meta["inputs_hash"]["timestamps"] == \
+        file_hash(case["seq"] / "timestamps.csv")
+    assert "timestamps" not in read_measurements(case["out"] / "fps.npz").meta["inputs_hash"]
 
 
 # -- a good run -------------------------------------------------------------------------------------------------
