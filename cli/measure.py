@@ -161,6 +161,10 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         check_overlay_dir(overlay_dir)
     elif overlay_video:
         raise BadInput("--overlay-video: only with --overlay DIR")
+    if window is not None and window % 2 == 0:     # option values before anything is read
+        raise BadInput(f"--window: an odd number expected, got {window}")
+    if not dense:
+        _size_factor(size_factor)
     both = fields == "both"
     if field_order != "auto" and not both:
         raise BadInput("--field-order applies to --fields both only")
