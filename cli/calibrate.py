@@ -146,7 +146,8 @@ def _guard(out: Path, folder, target_file, more_inputs=None, report_dir=None) ->
         labels["--report"] = Path(report_dir)
         folders.append(("--report", Path(report_dir), REPORT_PRODUCER))
     guard_outputs(labels, {"FOLDER": folder, "--target": target_file, **(more_inputs or {})},
-                  files=[("-o/--output", out, ("heartcv.rig",)), ("Kalibr export", kalibr)], folders=folders)
+                  files=[("-o/--output", out, ("heartcv.rig",)), ("Kalibr export", kalibr, ("yaml",))],
+                  folders=folders)
     return {"colmap": colmap, "kalibr": kalibr}
 
 

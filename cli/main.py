@@ -52,8 +52,11 @@ class LazyGroup(click.Group):
             return super().invoke(ctx)
         except InputError as exc:
             raise _InputRefused(str(exc)) from None
-        except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort, KeyboardInterrupt,
-                SystemExit):
+        except Terminated:
+            raise Interrupted("terminated (SIGTERM)", 143) from None
+        except KeyboardInterrupt:
+            raise Interrupted("interrupted (Ctrl-C)", 130) from None
+        except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort, SystemExit):
             raise
         except OSError as exc:
             if exc.errno in SYSTEM_ERRNOS:   # the machine refused a file operation: neither the input nor a bug
@@ -62,6 +65,27 @@ class LazyGroup(click.Group):
         except Exception as exc:  # noqa: BLE001 - the one place that reports bugs (docs/cli.md §1.3)
             verbosity = (ctx.obj or {}).get("verbosity", 0)
             raise InternalError(exc, verbosity) from None
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is so that every open output's clean-up runs as for Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
+class Interrupted(click.ClickException):
+    """Ctrl-C (exit 130) or SIGTERM (exit 143): one line, no traceback; the outputs' temporary files were removed
+    and every earlier output is as it was."""
+
+    def __init__(self, what: str, code: int):
+        super().__init__(f"{what}: stopped; nothing was replaced (earlier outputs are as they were, temporary files "
+                         "removed)")
+        self.exit_code = code
+
+    def show(self, file=None):
+        click.echo(f"Error: {self.format_message()}", err=True)
 
 
 class _InputRefused(click.ClickException):
@@ -138,6 +162,12 @@ def main(ctx, verbose, quiet):
     silence_ffmpeg(verbose=verbosity > 0)
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = verbosity
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():   # (not in a test runner's thread)
+        before = signal.signal(signal.SIGTERM, _on_sigterm)
+        ctx.call_on_close(lambda: signal.signal(signal.SIGTERM, before))     # a host process gets its own back
 
 
 if __name__ == "__main__":  # pragma: no cover

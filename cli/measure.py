@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from pathlib import Path
 import time
 
@@ -149,7 +150,7 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
     seq = Path(sequence)
     inputs_path = Path(inputs_file) if inputs_file else seq / "inputs.csv"
     _guard(output, csv_file, {"SEQUENCE": seq, "--rig": rig_file, "--mask": mask_file, "--inputs": inputs_path,
-                              "SEQUENCE/timestamps.csv": seq / "timestamps.csv", "--truth": truth_file})
+                              "SEQUENCE/timestamps.csv": seq / "timestamps.csv", "--truth": truth_file}, overlay_dir)
     if overlay_dir is not None:
         from .measure_overlay import check_overlay_dir
 
@@ -287,20 +288,25 @@ def _size_factor(value) -> float | None:
 
 
 # -- outputs are guarded before anything is read -------------------------------------------------------------------
-def _guard(output, csv_file, inputs):
+def _guard(output, csv_file, inputs, overlay_dir=None):
     """Exit 2 before any work for an output that is not ``.npz``, that equals an input (the existing files inside
     SEQUENCE count as inputs: images, timestamps, inputs, truth), or that would replace a file heartcv did not
     write."""
     if Path(output).suffix.lower() != ".npz":
         raise BadInput(f"-o/--output: a .npz file expected, got {output}")
     outputs = {"-o/--output": output, "--csv": csv_file}
+    for label, path in outputs.items():     # not inside the overlay folder, which is written (and replaced) whole
+        if path is not None and overlay_dir is not None and Path(os.path.realpath(path)).is_relative_to(
+                os.path.realpath(overlay_dir)):
+            raise BadInput(f"{label}: {path} lies inside the --overlay folder {overlay_dir}, which measure writes "
+                           "as a whole; choose a path outside it")
     if csv_file is not None and Path(csv_file).resolve() == Path(output).resolve():
         raise BadInput(f"--csv: {csv_file} is the -o/--output file; choose another path")
     seq = Path(inputs["SEQUENCE"]).resolve()
     inside = {f"SEQUENCE/{Path(p).resolve().relative_to(seq)}": p for p in outputs.values()
               if p is not None and Path(p).exists() and Path(p).resolve().is_relative_to(seq)}
     guard_outputs(outputs, {**inputs, **inside},
-                  files=[("-o/--output", output, ("heartcv.measurements",)), ("--csv", csv_file)])
+                  files=[("-o/--output", output, ("heartcv.measurements",)), ("--csv", csv_file, ("csv",))])
 
 
 # -- inputs ------------------------------------------------------------------------------------------------------

@@ -74,6 +74,9 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
     _guard(model_file, output, truth_path)
     m = load_model(model_file)
     _check_size(duration, substeps, m.config.frame_rate)
+    for label, path in (("-o/--output", output), ("--truth", truth_path)):
+        if path is not None and Path(path).suffix.lower() != ".npz":
+            raise BadInput(f"{label}: a .npz file expected, got {path}")
     theta = stiffness_schedule(m, stiffness_cycle, "active")
     try:
         with threadpool_limits(1):

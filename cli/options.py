@@ -100,6 +100,11 @@ def guard_outputs(outputs: dict, inputs: dict, *, files=(), folders=()) -> None:
     folders : iterable of (label, path, producer)
         Output folders that ``producer`` replaces as a whole (:func:`check_output_folder`).
     """
+    from heartcv.tracker.files import check_output_name
+
+    for label, path in outputs.items():     # names the system cannot create, before any path is resolved
+        if path is not None:
+            check_output_name(path, label, folder=any(path == f[1] for f in folders))
     refuse_overlap(outputs, inputs)
     for label, path, *kinds in files:
         if path is not None:

@@ -62,8 +62,8 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
     png, pdf = out.with_suffix(".png"), out.with_suffix(".pdf")
-    guard_outputs({}, {}, files=[("-o/--output", out, ("heartcv.target",)), ("-o/--output (PNG)", png),
-                                 ("-o/--output (PDF)", pdf)])
+    guard_outputs({}, {}, files=[("-o/--output", out, ("heartcv.target",)), ("-o/--output (PNG)", png, ("png",)),
+                                 ("-o/--output (PDF)", pdf, ("pdf",))])
     grid = _grid(kind, squares, inner_corners, marker_mm, legacy or inverted)
     spec = _spec(kind, grid, square_mm, marker_mm, dictionary, legacy, name or out.stem, inverted)
     margin_m = spec.square_m if margin_mm is None else margin_mm / 1000

@@ -174,11 +174,16 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise BadInput("--parameter-overdispersion applies to the estimators of parameters (ge, ukf, ekf) only")
     if heart_rate_walk is not None and (estimator != "ge" or not sample_heart_rate):
         raise BadInput("--heart-rate-walk applies to ge sampling the heart rate only (not with --hold-heart-rate)")
+    from heartcv.tracker.files import check_output_name
+
+    check_output_name(output)
     part = partial_path(output)
     guard_outputs({"-o/--output": output, "the partial file of -o": part},
                   {"MEASUREMENTS": measurements, "--model": model_file, "--params": params_file},
                   files=[("-o/--output", output, ("heartcv.estimates",)),
                          ("the partial file of -o", part, ("heartcv.estimates",))])
+    if Path(output).suffix.lower() != ".npz":
+        raise BadInput(f"-o/--output: a .npz file expected, got {output}")
     meas = read_measurements(measurements)
     file_ids = np.asarray(meas.point_ids)
     m = load_model(model_file)

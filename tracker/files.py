@@ -42,6 +42,7 @@ import numpy as np
 __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "heartcv_format",
+    "check_output_name", "file_kind", "NAME_MAX",
     "HAND_WRITTEN_FORMATS", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
     "read_npz_meta", "check_provenance", "show",
@@ -191,7 +192,11 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
         yield tmp
         info = {"producer": producer, "heartcv_version": __version__}
         info.update(manifest or {})
-        info["files"] = sorted(q.relative_to(tmp).as_posix() for q in tmp.rglob("*") if not q.is_dir())
+        files = sorted(q for q in tmp.rglob("*") if not q.is_dir())
+        info["files"] = [q.relative_to(tmp).as_posix() for q in files]
+        info["folders"] = sorted(q.relative_to(tmp).as_posix() for q in tmp.rglob("*") if q.is_dir())
+        # size and modification time of each: a file a person edited since is not replaced (a rename keeps both)
+        info["stat"] = {q.relative_to(tmp).as_posix(): [q.lstat().st_size, q.lstat().st_mtime_ns] for q in files}
         (tmp / MANIFEST_NAME).write_text(json.dumps(plain(info), indent=1, sort_keys=True) + "\n", encoding="utf-8")
         os.chmod(tmp, 0o777 & ~_umask())
         old = None
@@ -202,7 +207,12 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
             os.replace(path, old)
         os.replace(tmp, path)
         if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+            shutil.rmtree(old, onerror=lambda *_: None)
+            if old.exists():
+                import logging
+
+                logging.getLogger(__name__).warning("%s: the replaced folder could not be removed entirely (%s "
+                                                    "left; permissions?)", path, old)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -212,7 +222,9 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
 # Output safety
 # =====================================================================================================================
 def _resolved(p) -> Path:
-    return Path(os.path.abspath(os.path.expanduser(str(p)))).resolve()
+    # realpath resolves each symlink before the '..' after it (abspath first would drop 'lnk/..' by its text and
+    # name another file than the one the system opens)
+    return Path(os.path.realpath(os.path.expanduser(str(p))))
 
 
 def refuse_overlap(outputs: dict, inputs: dict) -> None:
@@ -236,6 +248,10 @@ def refuse_overlap(outputs: dict, inputs: dict) -> None:
         for other_label, other in outs[:i]:
             if _resolved(op) == _resolved(other):
                 raise InputError(op, f"is also the output {other_label}; two outputs need two paths", olabel)
+            for (la, a), (lb, b) in (((olabel, op), (other_label, other)), ((other_label, other), (olabel, op))):
+                if _resolved(a).is_relative_to(_resolved(b)):
+                    raise InputError(a, f"lies inside the output {lb} ({b}), which the stage writes as a whole; "
+                                        "choose a path outside it", la)
     for olabel, op in outputs.items():
         if op is None:
             continue
@@ -319,15 +335,70 @@ def is_heartcv_file(path) -> bool:
     return False
 
 
+NAME_MAX = 255
+"""Longest file name (bytes) the usual file systems take."""
+
+
+def file_kind(path, fmt: str | None = None) -> str:
+    """What an existing file holds, for :func:`check_output_file`'s ``kinds``: its heartcv ``format``
+    (:func:`heartcv_format`), else ``png`` or ``pdf`` by its first bytes, else its suffix without the dot (``csv``,
+    ``yaml``, ``md``; ``""`` without one)."""
+    fmt = heartcv_format(path) if fmt is None else fmt
+    if fmt:
+        return fmt
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        head = b""
+    if head.startswith(b"\x89PNG"):
+        return "png"
+    if head.startswith(b"%PDF"):
+        return "pdf"
+    return Path(path).suffix.lower().lstrip(".")
+
+
+def check_output_name(path, label: str = "-o/--output", folder: bool = False) -> None:
+    """Refuse, before any work, an output path the system cannot create as a file (``folder``: as a folder): an
+    empty name, one ending in a path separator (a file's), a name longer than :data:`NAME_MAX` bytes."""
+    text = os.fspath(path)
+    if not str(text).strip():
+        raise InputError(None, f"an empty path; a {'folder' if folder else 'file'} path expected", label)
+    if not folder and str(text).endswith((os.sep, "/")):
+        raise InputError(text, "ends with a path separator (a folder); a file path expected", label)
+    for part in Path(text).parts:
+        if len(os.fsencode(part)) > NAME_MAX:
+            raise InputError(text, f"a name of {len(os.fsencode(part))} bytes; at most {NAME_MAX} expected", label)
+
+
 def check_output_file(path, label: str = "-o/--output", kinds=None) -> None:
     """Refuse an output file path that holds something heartcv did not write (:func:`is_heartcv_file`), a heartcv
-    file of another kind than ``kinds`` (the formats the stage writes there, e.g. ``("heartcv.rig",)``: a fit
-    does not replace a rig), or a folder; a missing file, or one that a stage of that kind wrote before, may be
-    (re)written."""
+    file of another kind than ``kinds`` (the formats the stage writes there, e.g. ``("heartcv.rig",)``, or the
+    :func:`file_kind` of a text or image output, ``("csv",)``: a fit does not replace a rig, a CSV export not a
+    parameters file), a folder, a device, FIFO or socket (opened, not replaced), a symbolic link (the link is the
+    user's) and a file the user may not write; a missing file, or one that a stage of that kind wrote before, may
+    be (re)written."""
+    import stat
+
+    check_output_name(path, label)
     path = Path(path)
-    if path.is_dir():
+    try:
+        st = os.lstat(path)
+    except (FileNotFoundError, NotADirectoryError):     # (a parent that is a file: named below)
+        st = None
+    except OSError as exc:
+        raise InputError(path, f"cannot be examined ({exc.strerror or exc})", label) from None
+    if st is not None and stat.S_ISLNK(st.st_mode):
+        raise InputError(path, f"is a symbolic link (to {os.readlink(path)}); not replaced: give the path it points "
+                               "to, or another path", label)
+    if st is not None and stat.S_ISDIR(st.st_mode):
         raise InputError(path, "is a folder; a file path expected", label)
-    if path.exists():
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        raise InputError(path, "is not a regular file (a device, a FIFO or a socket); not replaced (choose a file "
+                               "path)", label)
+    if st is not None:
+        if not os.access(path, os.W_OK):
+            raise InputError(path, "is read-only; not replaced (make it writable, or choose another path)", label)
         fmt = heartcv_format(path)
         if fmt in HAND_WRITTEN_FORMATS:
             raise InputError(path, f"exists and is a {fmt} file (written by a person, not by a stage); not "
@@ -335,9 +406,10 @@ def check_output_file(path, label: str = "-o/--output", kinds=None) -> None:
         if not is_heartcv_file(path):
             raise InputError(path, "exists and was not written by heartcv; not replaced (remove it or choose "
                                    "another path)", label)
-        if kinds is not None and fmt is not None and fmt not in kinds:
-            raise InputError(path, f"exists and holds a {fmt} file, not a {' or '.join(kinds)} file as this output; "
-                                   "not replaced (remove it or choose another path)", label)
+        kind = file_kind(path, fmt) if kinds is not None and path.stat().st_size else None
+        if kind is not None and kind not in kinds:
+            raise InputError(path, f"exists and holds a {kind or 'suffix-less'} file, not a {' or '.join(kinds)} "
+                                   "file as this output; not replaced (remove it or choose another path)", label)
     if path.parent.exists() and not path.parent.is_dir():
         raise InputError(path, f"{path.parent} is not a folder", label)
     _check_writable_parent(path, label)
@@ -346,6 +418,7 @@ def check_output_file(path, label: str = "-o/--output", kinds=None) -> None:
 def check_output_folder(path, producer: str, label: str = "-o/--output") -> None:
     """Refuse an output folder that exists and was not written by ``producer`` (its manifest, :func:`atomic_folder`).
     """
+    check_output_name(path, label, folder=True)
     path = Path(path)
     if not path.exists() and not path.is_symlink():
         if path.parent.exists() and not path.parent.is_dir():
@@ -367,12 +440,30 @@ def check_output_folder(path, producer: str, label: str = "-o/--output") -> None
                                "the folder or choose another path", label)
     if isinstance(man.get("files"), list):      # folders written since the manifest lists its files
         wrote = {str(f) for f in man["files"]} | {MANIFEST_NAME}
-        added = sorted(q.relative_to(path).as_posix() for q in path.rglob("*")
-                       if not q.is_dir() and q.relative_to(path).as_posix() not in wrote)
+        parents = {p.as_posix() for f in wrote for p in Path(f).parents} | {str(d) for d in man.get("folders") or []}
+        added = []
+        for q in path.rglob("*"):
+            rel = q.relative_to(path).as_posix()
+            if q.is_symlink() or not q.is_dir():
+                if rel not in wrote or q.is_symlink():      # a file, or a link, a person put there
+                    added.append(rel)
+            elif rel not in parents:                        # a folder the run did not make (empty, or a person's)
+                added.append(rel + "/")
+        added = sorted(a for a in added if not (a.endswith("/") and any(o != a and o.startswith(a) for o in added)))
         if added:
             shown = ", ".join(added[:5]) + (f" and {len(added) - 5} more" if len(added) > 5 else "")
             raise InputError(path, f"holds files {producer} did not write ({shown}); it would delete them on "
                                    "replacing the folder: move them out or choose another path", label)
+        stats = man.get("stat")
+        if isinstance(stats, dict):
+            changed = sorted(f for f, v in stats.items() if isinstance(v, list) and len(v) == 2
+                             and (path / f).is_file() and [(path / f).lstat().st_size,
+                                                          (path / f).lstat().st_mtime_ns] != v)
+            if changed:
+                shown = ", ".join(changed[:5]) + (f" and {len(changed) - 5} more" if len(changed) > 5 else "")
+                raise InputError(path, f"holds files changed since {producer} wrote them ({shown}); it would lose "
+                                       "the changes on replacing the folder: move them out or choose another path",
+                                 label)
     _check_writable_parent(path, label)
 
 

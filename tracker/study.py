@@ -248,11 +248,15 @@ _WORKER: dict = {}
 
 def _init_worker(config_dict):
     """Process-pool initializer: one BLAS thread, the model built once per worker from its config."""
+    import signal
+
     from threadpoolctl import threadpool_limits
 
     from .config import model_config_from_dict
     from .model import build_model
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)     # the parent stops the pool on Ctrl-C (no worker traceback)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     _WORKER["limits"] = threadpool_limits(1)
     _WORKER["model"] = build_model(model_config_from_dict(config_dict))
     _WORKER["fingerprint"] = model_fingerprint(_WORKER["model"])
@@ -306,6 +310,11 @@ def run_study(model: PatchModel, *, runs: int, steps: int, seed: int = 0, estima
                 other.add(fingerprint)
                 if progress is not None:
                     progress(done, runs)
+        except KeyboardInterrupt:       # Ctrl-C or SIGTERM: the workers ignore them; stop them now
+            for proc in list((getattr(ex, "_processes", None) or {}).values()):
+                proc.terminate()
+            ex.shutdown(wait=True, cancel_futures=True)     # quick: the pool is broken, its manager ends
+            raise
         except BaseException:
             ex.shutdown(wait=True, cancel_futures=True)
             raise

@@ -29,6 +29,16 @@ def default_workers() -> int:
 def _init(fn, state):
     global _STATE, _FN
     _STATE, _FN = state, fn
+    _ignore_interrupts()
+
+
+def _ignore_interrupts():
+    """Workers leave Ctrl-C and SIGTERM to the parent, which stops the pool and cleans its outputs up (a worker
+    that took them printed a traceback of its own)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _call(i):

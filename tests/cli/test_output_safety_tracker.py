@@ -253,6 +253,10 @@ def test_a_report_folder_holding_a_file_a_person_added_is_kept(here):
     assert "holds files heartcv report did not write (figs/notes.txt)" in res.stderr
     assert _snapshot(rep) == before
     (rep / "figs" / "notes.txt").unlink()
+    res = _run("report", here / "kf.npz", "-o", rep, "--resamples", "0")   # the person's (now empty) folder too
+    _refused(res, rep)
+    assert "holds files heartcv report did not write (figs/)" in res.stderr
+    (rep / "figs").rmdir()
     _ok("report", here / "kf.npz", "-o", rep, "--resamples", "0")
 
 
@@ -382,3 +386,120 @@ def test_a_successful_run_logs_its_summary_at_info(here, stage, line):
     assert "WARNING" not in res.stderr and res.stdout == ""
     quiet = _ok("-q", *args, "-o", out)  # -q: warnings only, and a re-run replaces the stage's own output
     assert quiet.stderr == "" and quiet.stdout == ""
+
+
+# -- outputs that are not plain files, links, odd names (a safety audit of 2026-11-29) ---------------------------------
+def test_an_output_that_is_not_a_regular_file_is_refused_before_any_work(here):
+    """A FIFO (the stage hung reading it, then replaced it with its file), a device (as root, -o /dev/null became a
+    148 KB estimate file), a symbolic link (the user's link became a file) and '..' after a symlinked folder (the
+    output check took 'lnk/..' by its text and wrote over an input): exit 2 naming the path, nothing touched."""
+    import os
+    import stat
+
+    fifo = here / "fifo.npz"
+    os.mkfifo(fifo)
+    res = _run("track", here / "m.npz", "--model", here / "model.yaml", "-o", fifo)
+    _refused(res, fifo)
+    assert "is not a regular file (a device, a FIFO or a socket)" in res.stderr
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    if os.geteuid() == 0:   # a device node of one's own (never the system's /dev/null)
+        dev = here / "null.npz"
+        os.mknod(dev, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+        res = _run("track", here / "m.npz", "--model", here / "model.yaml", "-o", dev)
+        _refused(res, dev)
+        assert stat.S_ISCHR(os.lstat(dev).st_mode)
+    (here / "keep").mkdir()
+    _ok("track", here / "m.npz", "--model", here / "model.yaml", "-o", here / "keep" / "v1.npz")
+    link = here / "latest.npz"
+    link.symlink_to(here / "keep" / "v1.npz")
+    before = (here / "keep" / "v1.npz").read_bytes()
+    res = _run("track", here / "m.npz", "--model", here / "model.yaml", "-o", link)
+    _refused(res, link)
+    assert "is a symbolic link" in res.stderr and link.is_symlink()
+    assert (here / "keep" / "v1.npz").read_bytes() == before
+    (here / "real" / "sub").mkdir(parents=True)
+    (here / "lnk").symlink_to(here / "real" / "sub")
+    shutil.copy(here / "m.npz", here / "real" / "m.npz")
+    before = _snapshot(here / "real")
+    res = _run("track", here / "real" / "m.npz", "--model", here / "model.yaml", "-o", "%s/lnk/../m.npz" % here)
+    _refused(res)
+    assert "is the input MEASUREMENTS" in res.stderr, res.stderr
+    assert _snapshot(here / "real") == before
+
+
+@pytest.mark.parametrize("name, message", [
+    ("", "an empty path; a file path expected"),
+    ("x" * 300 + ".npz", "a name of 304 bytes; at most 255 expected"),
+    ("new/", "ends with a path separator (a folder); a file path expected"),
+])
+def test_output_names_the_system_cannot_create_exit_2(here, name, message):
+    """An empty -o, a name beyond 255 bytes, a folder path: exit 2 before any work (they were internal errors, or
+    wrote a file 'new')."""
+    target = name if name in ("",) else (str(here / name) + ("/" if name.endswith("/") else ""))
+    res = _run("track", here / "m.npz", "--model", here / "model.yaml", "-o", target)
+    assert res.exit_code == 2 and message in res.stderr and "internal error" not in res.output, res.output
+    assert not (here / "new").exists()
+
+
+def test_an_output_of_another_kind_is_not_replaced(here, tmp_path):
+    """The kind of an output is checked for every file a stage writes: an estimate file is not written over the
+    printable target (PNG/PDF of heartcv target), a CSV export not over a parameters file; and an output that lies
+    inside another output folder of the same run is refused before any work."""
+    from heartcv.tracker.files import InputError, check_output_file, refuse_overlap
+
+    _ok("target", "--type", "chessboard", "--inner-corners", "6x4", "--square-mm", "10", "-o", here / "t.yaml")
+    for f in ("t.pdf", "t.png"):
+        before = (here / f).read_bytes()
+        res = _run("track", here / "m.npz", "--model", here / "model.yaml", "-o", here / f)
+        _refused(res, here / f)
+        assert (here / f).read_bytes() == before
+    with pytest.raises(InputError, match="holds a heartcv.parameters file, not a csv file"):
+        check_output_file(here / "p.yaml", "--csv", ("csv",))
+    with pytest.raises(InputError, match=r"lies inside the output --report"):
+        refuse_overlap({"-o/--output": tmp_path / "rep" / "rig.yaml", "--report": tmp_path / "rep"}, {})
+
+
+def test_a_report_folder_with_a_link_or_an_edited_file_is_kept(here):
+    """A rerun deleted a link a person put into the report folder and lost text appended to its summary.md."""
+    rep = here / "rep"
+    _ok("report", here / "kf.npz", "-o", rep, "--resamples", "0")
+    (rep / "elsewhere").symlink_to(here)
+    res = _run("report", here / "kf.npz", "-o", rep, "--resamples", "0")
+    _refused(res, rep)
+    assert "did not write (elsewhere)" in res.stderr and (rep / "elsewhere").is_symlink()
+    (rep / "elsewhere").unlink()
+    with open(rep / "summary.md", "a") as f:
+        f.write("\nmy notes\n")
+    res = _run("report", here / "kf.npz", "-o", rep, "--resamples", "0")
+    _refused(res, rep)
+    assert "holds files changed since heartcv report wrote them (summary.md)" in res.stderr
+    assert (rep / "summary.md").read_text().endswith("my notes\n")
+
+
+@pytest.mark.parametrize("sig, code, what", [("SIGINT", 130, "interrupted (Ctrl-C)"),
+                                             ("SIGTERM", 143, "terminated (SIGTERM)")])
+def test_an_interrupted_stage_keeps_the_earlier_output_and_leaves_no_temporary_files(here, sig, code, what):
+    """Ctrl-C and SIGTERM during a Monte-Carlo study with worker processes: one line and exit 130 / 143 (was
+    click's 'Aborted!' exit 1 with a traceback per worker; SIGTERM left the hidden temporary folders behind), the
+    earlier study folder byte for byte, no temporary folder, no worker left."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    _ok("simulate", here / "model.yaml", "--runs", "2", "--steps", "5", "--workers", "1", "-o", here / "st")
+    before = _snapshot(here / "st")
+    cmd = [sys.executable, "-m", "heartcv.cli.main", "-q", "simulate", str(here / "model.yaml"), "--runs", "400",
+           "--steps", "200", "--workers", "2", "-o", str(here / "st")]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    time.sleep(4.0)         # imports, the model, the workers started: 400 runs take minutes
+    assert proc.poll() is None, "the study ended before it could be interrupted"
+    proc.send_signal(getattr(signal, sig))
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    assert f"Error: {what}: stopped; nothing was replaced" in err and "Traceback" not in err, err
+    assert _snapshot(here / "st") == before
+    assert not list(here.glob(".st.*")), list(here.glob(".st.*"))
+    time.sleep(0.5)
+    ps = subprocess.run(["pgrep", "-s", str(proc.pid)], capture_output=True, text=True)
+    assert ps.stdout.strip() == "", ps.stdout
