@@ -18,7 +18,7 @@ import traceback
 
 import click
 
-from heartcv.tracker.files import InputError
+from heartcv.tracker.files import ConcurrentWrite, InputError
 
 log = logging.getLogger("heartcv")
 
@@ -58,6 +58,8 @@ class LazyGroup(click.Group):
             raise Interrupted("interrupted (Ctrl-C)", 130) from None
         except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort, SystemExit):
             raise
+        except ConcurrentWrite as exc:      # two runs on one output folder: a failed stage, not a bug
+            raise click.ClickException(str(exc)) from None
         except OSError as exc:
             if exc.errno in SYSTEM_ERRNOS:   # the machine refused a file operation: neither the input nor a bug
                 raise SystemRefused(exc) from None

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
+import errno
 import hashlib
 import io
 import json
@@ -42,7 +43,7 @@ import numpy as np
 __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "heartcv_format",
-    "check_output_name", "file_kind", "NAME_MAX",
+    "check_output_name", "file_kind", "NAME_MAX", "ConcurrentWrite",
     "HAND_WRITTEN_FORMATS", "read_text", "read_yaml",
     "parse_yaml", "dump_yaml", "write_yaml", "plain", "check_format", "get_field", "ArraySpec", "read_npz",
     "read_npz_meta", "check_provenance", "show",
@@ -169,6 +170,16 @@ def read_manifest(folder) -> dict | None:
     return d if isinstance(d, dict) else None
 
 
+class ConcurrentWrite(Exception):
+    """Another process wrote the same output folder while this one replaced it (the check and the renames are not
+    one atomic step): nothing of this run was put in place; the folder holds the other run's output."""
+
+    def __init__(self, path):
+        super().__init__(f"{path}: another run wrote this output folder at the same time; this run's output was "
+                         "not put in place (run again, one at a time)")
+        self.path = path
+
+
 @contextlib.contextmanager
 def atomic_folder(path, producer: str, manifest: dict | None = None):
     """Yield a hidden temporary folder beside ``path``; only if the block succeeds is it renamed to ``path``.
@@ -200,12 +211,17 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
         (tmp / MANIFEST_NAME).write_text(json.dumps(plain(info), indent=1, sort_keys=True) + "\n", encoding="utf-8")
         os.chmod(tmp, 0o777 & ~_umask())
         old = None
-        if path.exists():
-            check_output_folder(path, producer)  # still ours (checked again: the block may have taken long)
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
-            os.rmdir(old)
-            os.replace(path, old)
-        os.replace(tmp, path)
+        try:
+            if path.exists():
+                check_output_folder(path, producer)  # still ours (checked again: the block may have taken long)
+                old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+                os.rmdir(old)
+                os.replace(path, old)
+            os.replace(tmp, path)
+        except OSError as exc:
+            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOENT):   # another run renamed in between
+                raise ConcurrentWrite(path) from None
+            raise
         if old is not None:
             shutil.rmtree(old, onerror=lambda *_: None)
             if old.exists():

@@ -109,6 +109,29 @@ def test_atomic_folder_failure_keeps_the_previous_folder(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["study"]
 
 
+def test_atomic_folder_raced_by_another_run_says_so(tmp_path, monkeypatch):
+    """Another run renaming its folder into place between this run's check and its rename (ENOTEMPTY): a
+    ConcurrentWrite naming the folder (the command line's exit 1, not an internal error); the other run's folder
+    is kept and this run's temporary folder removed."""
+    import errno
+
+    out = tmp_path / "study"
+    real = os.replace
+
+    def raced(src, dst):
+        if Path(dst) == out:
+            out.mkdir(exist_ok=True)
+            (out / "theirs").write_text("x")
+            raise OSError(errno.ENOTEMPTY, "Directory not empty", str(dst))
+        return real(src, dst)
+
+    monkeypatch.setattr(F.os, "replace", raced)
+    with pytest.raises(F.ConcurrentWrite, match="another run wrote this output folder at the same time"):
+        with F.atomic_folder(out, "heartcv simulate") as tmp:
+            (tmp / "a").write_text("1")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["study"] and (out / "theirs").read_text() == "x"
+
+
 # -- output safety ------------------------------------------------------------------------------------------------
 def test_refuse_overlap_same_file_link_and_containing_folder(tmp_path):
     inp = tmp_path / "data" / "meas.npz"
