@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import logging
+import math
 import os
 from pathlib import Path
 import re
@@ -39,6 +40,7 @@ from .tracker.files import (
     plain,
     read_csv_table,
     read_npz,
+    show,
     write_npz,
     write_yaml,
 )
@@ -329,14 +331,14 @@ def _check_target_image(image) -> None:
             raise InputError(None, f"unknown key (known: {sorted(known)})", f"image.{key}")
         if key in ("png", "pdf"):
             if not isinstance(v, str) or not v:
-                raise InputError(None, f"a file name expected, got {v!r}", f"image.{key}")
+                raise InputError(None, f"a file name expected, got {show(v)}", f"image.{key}")
             continue
         values = v if key in _TARGET_IMAGE_PAIRS else [v]
         if (key in _TARGET_IMAGE_PAIRS and (not isinstance(v, list) or len(v) != 2)) or not all(
                 _is_num(x) and (x > 0 or (key == "margin_m" and x >= 0)) for x in values):
             want = "two finite positive numbers" if key in _TARGET_IMAGE_PAIRS else (
                 "a finite number >= 0" if key == "margin_m" else "a finite positive number")
-            raise InputError(None, f"{want} expected, got {v!r}", f"image.{key}")
+            raise InputError(None, f"{want} expected, got {show(v)}", f"image.{key}")
 
 
 def read_target(path) -> TargetSpec:
@@ -349,7 +351,7 @@ def read_target(path) -> TargetSpec:
         if size is not None and not (isinstance(size, list) and len(size) == 2 and all(_is_num(v) for v in size)
                                      and np.allclose(size, spec.board_size_m, rtol=1e-6, atol=0)):
             raise InputError(None, f"[{spec.board_size_m[0]:g}, {spec.board_size_m[1]:g}] (the board the other keys "
-                                   f"describe) expected, got {size!r}", "board_size_m")
+                                   f"describe) expected, got {show(size)}", "board_size_m")
         return spec
 
     return _read_typed_yaml(path, "target file", TARGET_FORMAT, from_dict)
@@ -477,7 +479,13 @@ def _matrix(v, shape, where, max_abs=None) -> np.ndarray:
 
 
 def _is_num(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+    """A finite int or float, not a bool (an integer beyond the float range is not one)."""
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
 
 
 def _check_residuals(d: dict, where: str):

@@ -1016,6 +1016,10 @@ def check_provenance(d: dict, path=None, prefix: str = "") -> None:
     if h is not None and (not isinstance(h, dict) or not all(isinstance(k, str) and (v is None or isinstance(v, str))
                                                              for k, v in h.items())):
         raise InputError(path, "a mapping of input role -> 'sha256:<hex>' expected", f"{prefix}inputs_hash")
+    sw = d.get("software")
+    if sw is not None and (not isinstance(sw, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                               for k, v in sw.items())):
+        raise InputError(path, "a mapping of library -> version string expected", f"{prefix}software")
 
 
 #: Libraries whose version a file records when the writing process has loaded them (:func:`software_versions`)

@@ -313,6 +313,8 @@ def test_target_file_and_images(tmp_path):
     ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {px_per_m: .nan}\n",
      "image.px_per_m: a finite positive number expected"),
     ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {colour: blue}\n", "image.colour: unknown key"),
+    ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {dpi: 1" + "0" * 400 + "}\n",
+     "image.dpi: a finite positive number expected, got an integer of about 10"),     # beyond float (fuzz)
     ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {size_px: [10]}\n",
      "image.size_px: two finite positive numbers"),
     ("type: chessboard\ninner_corners: [3, 3]\nsquare_m: 0.01\nimage: {png: 3}\n", "image.png: a file name"),

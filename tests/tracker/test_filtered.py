@@ -158,6 +158,14 @@ def test_estimate_file_with_bad_times_or_negative_counts_is_refused(tmp_path, kf
     write_estimates(tmp_path / "kf.npz", est)
     with np.load(tmp_path / "kf.npz") as z:
         arrays = {k: z[k] for k in z.files}
+    import json
+
+    meta = json.loads(bytes(arrays["meta_json"]).decode())
+    np.savez(tmp_path / "bad_software.npz", **dict(arrays, meta_json=np.frombuffer(
+        json.dumps(dict(meta, software=5)).encode(), np.uint8)))
+    with pytest.raises(InputError) as exc:     # (the fuzz: report's software line failed on it)
+        read_estimates(tmp_path / "bad_software.npz")
+    assert exc.value.field == "meta.software"
     for key, edit in (("times", lambda a: a[::-1].copy()), ("nis_dof", lambda a: a - 10 ** 6),
                       ("truncation_events", lambda a: a - 1)):
         bad = dict(arrays, **{key: edit(arrays[key])})
