@@ -437,8 +437,6 @@ def _options(ref, max_points, pixel_sigma, min_distance, corner_block, corner_qu
              min_angle=0.0, max_gap=60, window=None, specular=True):
     from heartcv.measure import MeasureOptions
 
-    if window is not None and window % 2 == 0:
-        raise BadInput(f"--window: an odd number expected, got {window}")
     base = MeasureOptions(ref_camera=ref, max_points=max_points, pixel_sigma=pixel_sigma,
                           min_distance_px=min_distance, corner_block_size=corner_block,
                           corner_quality=corner_quality, highpass_sigma=highpass or None,

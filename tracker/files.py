@@ -454,32 +454,32 @@ def check_output_folder(path, producer: str, label: str = "-o/--output") -> None
         raise InputError(path, f"was written by an older {producer} whose manifest does not list its files, so files "
                                "added to it since cannot be told apart and would be deleted on replacing it: remove "
                                "the folder or choose another path", label)
-    if isinstance(man.get("files"), list):      # folders written since the manifest lists its files
-        wrote = {str(f) for f in man["files"]} | {MANIFEST_NAME}
-        parents = {p.as_posix() for f in wrote for p in Path(f).parents} | {str(d) for d in man.get("folders") or []}
-        added = []
-        for q in path.rglob("*"):
-            rel = q.relative_to(path).as_posix()
-            if q.is_symlink() or not q.is_dir():
-                if rel not in wrote or q.is_symlink():      # a file, or a link, a person put there
-                    added.append(rel)
-            elif rel not in parents:                        # a folder the run did not make (empty, or a person's)
-                added.append(rel + "/")
-        added = sorted(a for a in added if not (a.endswith("/") and any(o != a and o.startswith(a) for o in added)))
-        if added:
-            shown = ", ".join(added[:5]) + (f" and {len(added) - 5} more" if len(added) > 5 else "")
-            raise InputError(path, f"holds files {producer} did not write ({shown}); it would delete them on "
-                                   "replacing the folder: move them out or choose another path", label)
-        stats = man.get("stat")
-        if isinstance(stats, dict):
-            changed = sorted(f for f, v in stats.items() if isinstance(v, list) and len(v) == 2
-                             and (path / f).is_file() and [(path / f).lstat().st_size,
-                                                          (path / f).lstat().st_mtime_ns] != v)
-            if changed:
-                shown = ", ".join(changed[:5]) + (f" and {len(changed) - 5} more" if len(changed) > 5 else "")
-                raise InputError(path, f"holds files changed since {producer} wrote them ({shown}); it would lose "
-                                       "the changes on replacing the folder: move them out or choose another path",
-                                 label)
+    # the manifest lists its files (checked above): anything else in the folder is a person's
+    wrote = {str(f) for f in man["files"]} | {MANIFEST_NAME}
+    parents = {p.as_posix() for f in wrote for p in Path(f).parents} | {str(d) for d in man.get("folders") or []}
+    added = []
+    for q in path.rglob("*"):
+        rel = q.relative_to(path).as_posix()
+        if q.is_symlink() or not q.is_dir():
+            if rel not in wrote or q.is_symlink():      # a file, or a link, a person put there
+                added.append(rel)
+        elif rel not in parents:                        # a folder the run did not make (empty, or a person's)
+            added.append(rel + "/")
+    added = sorted(a for a in added if not (a.endswith("/") and any(o != a and o.startswith(a) for o in added)))
+    if added:
+        shown = ", ".join(added[:5]) + (f" and {len(added) - 5} more" if len(added) > 5 else "")
+        raise InputError(path, f"holds files {producer} did not write ({shown}); it would delete them on "
+                               "replacing the folder: move them out or choose another path", label)
+    stats = man.get("stat")
+    if isinstance(stats, dict):
+        changed = sorted(f for f, v in stats.items() if isinstance(v, list) and len(v) == 2
+                         and (path / f).is_file() and [(path / f).lstat().st_size,
+                                                      (path / f).lstat().st_mtime_ns] != v)
+        if changed:
+            shown = ", ".join(changed[:5]) + (f" and {len(changed) - 5} more" if len(changed) > 5 else "")
+            raise InputError(path, f"holds files changed since {producer} wrote them ({shown}); it would lose "
+                                   "the changes on replacing the folder: move them out or choose another path",
+                             label)
     _check_writable_parent(path, label)
 
 
