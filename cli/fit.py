@@ -194,9 +194,10 @@ def _place_patch(rig_meas, m, output, patch_mode, estimate_input):
     """Bring a rig-frame set onto a patch (``--patch``): ``(model, patch-frame set, registration entry)``."""
     import numpy as np
 
-    from heartcv.tracker.patch_fit import view_within_patch
+    from heartcv.tracker.patch_fit import check_view_scale, view_within_patch
     from heartcv.tracker.registration import deformation_signal
 
+    check_view_scale(rig_meas)     # positions in millimetres: exit 2, before any placement
     if patch_mode == "observed" or (patch_mode == "auto" and estimate_input
                                     and view_within_patch(rig_meas, m.config.geometry)):
         return _observed_patch(rig_meas, m, output)
@@ -204,27 +205,19 @@ def _place_patch(rig_meas, m, output, patch_mode, estimate_input):
     if estimate_input:  # the model's pressure column driven by the dominant deformation, any other input held
         proxy = np.zeros((rig_meas.n_frames, len(m.input_names)))
         proxy[:, m.input_names.index("pressure")] = deformation_signal(rig_meas)[:, 0]
-    try:
-        meas, registration = _register(rig_meas, m, output, proxy)
-    except StageFailed as exc:
-        if patch_mode == "model" or not estimate_input:
-            raise
-        log.warning("%s; fitting the patch to the observed surface instead", exc)
-        return _observed_patch(rig_meas, m, output)
-    return m, meas, registration
-
-
-def _register(rig_meas, m, output, inputs=None):
-    """Register a rig-frame set onto the patch: ``(patch-frame set, registration entry of the parameters file)``;
-    StageFailed (exit 1) when the registration does not converge. ``inputs`` stand in for unrecorded ones."""
     from heartcv.tracker.registration import register_rig_measurements, registration_to_dict
 
-    meas, reg = register_rig_measurements(rig_meas, m, inputs=inputs)
+    meas, reg = register_rig_measurements(rig_meas, m, inputs=proxy)
     if meas is None:
-        raise StageFailed(f"registration onto the patch did not converge ({reg.message}); nothing written to "
-                          f"{output}")
+        why = f"registration onto the patch did not converge ({reg.message})"
+        if patch_mode == "auto" and estimate_input:
+            log.warning("%s; fitting the patch to the observed surface instead", why)
+            return _observed_patch(rig_meas, m, output)
+        raise StageFailed(f"{why}; nothing written to {output}; if the cameras see a part of the heart (an "
+                          "endoscope's view of a few centimetres), --patch observed fits the patch to the surface "
+                          "they see")
     log.info("patch placed: %s", reg.message)
-    return meas, registration_to_dict(reg, rig_meas)
+    return m, meas, registration_to_dict(reg, rig_meas)
 
 
 def _input_mode(mode, meas, m, measurements) -> bool:

@@ -18,7 +18,7 @@ import traceback
 
 import click
 
-from heartcv.tracker.files import ConcurrentWrite, InputError
+from heartcv.tracker.files import ConcurrentWrite, InputError, output_group
 
 log = logging.getLogger("heartcv")
 
@@ -49,7 +49,8 @@ class LazyGroup(click.Group):
 
     def invoke(self, ctx):
         try:
-            return super().invoke(ctx)
+            with output_group():     # a stage's outputs go in place together, when it has finished (docs/cli.md §1.4)
+                return super().invoke(ctx)
         except InputError as exc:
             raise _InputRefused(str(exc)) from None
         except Terminated:

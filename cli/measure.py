@@ -352,10 +352,16 @@ def _check_rig_scale(rig, rig_file):
     check_rectified_meta(rig, rig_file)
 
 
+SLOW_FRAME_S = 1.0
+"""A median frame interval above this (s) is warned about: no heartbeat's frequency shows below 1 / (2 s)."""
+
+
 def _frame_times(source, fps, count, ref=0):
     """The frames' times: ``timestamps.csv``, else ``--fps``, else the reference camera's video's own frame times
     where its stated rate does not describe them (:func:`heartcv.measure_data.container_times`), else that rate,
     else :data:`heartcv.measure_data.DEFAULT_FPS` with a warning."""
+    import numpy as np
+
     from heartcv.io import read_timestamps
     from heartcv.measure_data import DEFAULT_FPS, container_times, frame_times
 
@@ -363,6 +369,10 @@ def _frame_times(source, fps, count, ref=0):
     if fps is not None and ts.is_file():
         log.warning("--fps %g given: %s is not read (the frames are taken at a constant %g per second)", fps, ts, fps)
     stamps = read_timestamps(ts, source.frame_names) if fps is None and ts.is_file() else None
+    if stamps is not None and len(stamps) > 1 and float(np.median(np.diff(stamps))) > SLOW_FRAME_S:
+        log.warning("%s: a median frame interval of %.3g s: a heartbeat (at least 0.5 Hz) needs frames under %g s "
+                    "apart; are the times in milliseconds? (time_s holds seconds)", ts,
+                    float(np.median(np.diff(stamps))), SLOW_FRAME_S)
     if stamps is None and fps is None and source.kind == "video" and source.videos:
         info = source.videos[0 if source.packing else ref]
         stamps = container_times(info.times_s, source.fps, count)

@@ -668,11 +668,13 @@ def _run(m, meas, estimator, joseph, fitted, theta0, prior_std, options, verbosi
 def _diverged(exc, estimator, meas, meta, part, output, measurements) -> str:
     """Write the steps done of a diverged run to the partial file; the failure message (naming the measurement
     file: its positions, covariances or inputs are what drove the estimate off)."""
+    from heartcv.tracker.files import written_at_once
     from heartcv.tracker.io import write_estimates
 
     where = ""
     if exc.partial is not None and exc.partial.completed_steps > 0:
-        write_estimates(part, exc.partial, dict(meta, partial=True))
+        with written_at_once():     # kept although the stage fails (exit 1)
+            write_estimates(part, exc.partial, dict(meta, partial=True))
         where = f"; the {exc.partial.completed_steps} steps done were written to {part} (marked partial)"
     return (f"{estimator} diverged on {measurements} at step {exc.step} (time {meas.times[exc.step]:.4g} s): the "
             f"estimate became non-finite (do its positions, covariances and inputs fit the model?){where}; no "

@@ -50,7 +50,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "HeartcvIOError", "atomic_path", "file_hash", "dump_yaml", "read_yaml", "write_yaml",
-    "IMAGE_SUFFIXES", "read_image", "write_image", "list_image_folder", "natural_key", "pair_instants",
+    "IMAGE_SUFFIXES", "read_image", "write_image", "list_image_folder", "natural_key", "sort_names", "pair_instants",
     "TARGET_FORMAT", "read_target", "write_target", "write_board_image",
     "RIG_FORMAT", "DIST_NAMES", "rig_to_dict", "rig_from_dict", "read_rig", "write_rig",
     "write_colmap", "colmap_camera", "write_kalibr", "kalibr_camchain",
@@ -100,6 +100,25 @@ def natural_key(name: str):
     return [(0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts], name
 
 
+_DECIMAL = re.compile(r"[+-]?\d+\.\d+")
+
+
+def sort_names(names, stem=lambda n: n) -> list:
+    """``names`` in frame order: by the value of the stems when every stem is a decimal number with a fractional
+    part (times in seconds, as some recorders name frames: ``0.04`` before ``0.2``, where natural order would put
+    ``0.2`` first), else in natural order (:func:`natural_key`; of a path's name). ``stem`` maps a name to its
+    stem."""
+    from decimal import Decimal
+
+    def label(n):
+        return natural_key(n.name if isinstance(n, Path) else str(n))
+
+    names = list(names)
+    if names and all(_DECIMAL.fullmatch(stem(n)) for n in names):
+        return sorted(names, key=lambda n: (Decimal(stem(n)), label(n)))
+    return sorted(names, key=label)
+
+
 def _linked(keys) -> list:
     """Indices of the cameras linked to the first by shared keys (directly or through others)."""
     group, todo = {0}, [0]
@@ -125,8 +144,8 @@ def pair_instants(names, files):
 
     Returns
     -------
-    instants : list of str      instant names in natural order (the stems; numbered: the first camera's stem that
-                                holds the number, else the first other camera's)
+    instants : list of str      instant names in frame order (:func:`sort_names`; the stems; numbered: the first
+                                camera's stem that holds the number, else the first other camera's)
     per_cam : list of dict      per camera, instant name -> path
     by : str                    ``"stem"`` or ``"number"``
 
@@ -138,7 +157,7 @@ def pair_instants(names, files):
     stems = [{p.stem: p for p in fs} for fs in files]
     linked = _linked([set(d) for d in stems])
     if len(linked) == len(stems) or len(stems) < 2:
-        return sorted(set().union(*stems), key=natural_key), stems, "stem"
+        return sort_names(set().union(*stems)), stems, "stem"
     numbered = []
     for d in stems:
         keyed = {}
@@ -177,7 +196,7 @@ def list_image_folder(folder) -> list[Path]:
         raise HeartcvIOError(folder, "no such folder" if not folder.exists() else "not a folder")
     files = [p for p in folder.iterdir()
              if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()]
-    return sorted(files, key=lambda p: natural_key(p.name))
+    return sort_names(files, stem=lambda p: p.stem)
 
 
 def read_image(path, mode: str = "gray", expected_size=None) -> np.ndarray:

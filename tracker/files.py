@@ -23,6 +23,7 @@ Limits are module constants (:data:`LIMITS`), documented in docs/formats.md §1.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 from dataclasses import dataclass
 import errno
 import hashlib
@@ -32,6 +33,7 @@ import math
 import os
 from pathlib import Path
 import re
+import secrets
 import shutil
 import tempfile
 import tokenize
@@ -41,7 +43,8 @@ import zlib
 import numpy as np
 
 __all__ = [
-    "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "MANIFEST_NAME", "read_manifest",
+    "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "output_group", "written_at_once",
+    "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "heartcv_format",
     "check_output_name", "file_kind", "NAME_MAX", "ConcurrentWrite",
     "HAND_WRITTEN_FORMATS", "read_text", "read_yaml",
@@ -111,7 +114,9 @@ def _check_writable_parent(path, label: str) -> None:
 # Hashes and atomic writes
 # =====================================================================================================================
 def file_hash(path) -> str:
-    """``sha256:<hex>`` of a file's bytes."""
+    """``sha256:<hex>`` of a file's bytes (of a file the running stage wrote and has not yet put in place, the
+    bytes it will put there: :func:`output_group`)."""
+    path = _pending_source(path)
     h = hashlib.sha256()
     try:
         with open(path, "rb") as f:
@@ -128,9 +133,113 @@ def _umask() -> int:
     return mask
 
 
+# outputs of the running stage put in place together at its end (output_group); None outside one
+_GROUP: contextvars.ContextVar = contextvars.ContextVar("heartcv_output_group", default=None)
+
+
+class _PendingFile:
+    """A finished temporary file waiting to be renamed over its destination (:func:`output_group`)."""
+
+    def __init__(self, tmp: Path, path: Path):
+        self.tmp, self.path, self.backup, self.existed = tmp, path, None, False
+
+    keep_backup = True     # outside a group nothing is undone: no second name needed
+
+    def commit(self) -> None:
+        self.existed = os.path.lexists(self.path)
+        if self.existed and self.keep_backup:
+            # a second name for the file being replaced, so that a later failure can put it back
+            backup = self.path.parent / f".{self.path.name}.old-{secrets.token_hex(6)}"
+            with contextlib.suppress(OSError):   # (a file system without hard links: no way back, as without a group)
+                os.link(self.path, backup)
+                self.backup = backup
+        os.replace(self.tmp, self.path)
+
+    def rollback(self) -> None:
+        if self.backup is not None:
+            os.replace(self.backup, self.path)
+            self.backup = None
+        elif not self.existed:
+            os.unlink(self.path)
+
+    def finish(self) -> None:
+        if self.backup is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self.backup)
+
+    def discard(self) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.tmp)
+
+
+def _pending_source(path):
+    """The temporary file holding what the running stage will put at ``path``; ``path`` when none is pending."""
+    group = _GROUP.get()
+    if group:
+        target = os.path.abspath(path)
+        for item in group:
+            if isinstance(item, _PendingFile) and os.path.abspath(item.path) == target:
+                return item.tmp
+    return path
+
+
+@contextlib.contextmanager
+def output_group():
+    """Put every output that :func:`atomic_path` and :func:`atomic_folder` write inside the block in place together,
+    when the block ends without an exception.
+
+    A stage with several outputs (a measurement file, its CSV and its overlay; a rig, its COLMAP folder and its
+    report) writes each to a temporary file or folder as before, but renames none until all are complete: a stage
+    that fails or is interrupted half-way leaves every earlier output as it was, not a new measurement file beside
+    last run's CSV. Should one of the final renames fail, those already done are undone (a replaced file is put
+    back from a hard link kept for the purpose; a replaced folder from where it was moved). Inside an
+    :func:`atomic_folder` block, files written into its temporary folder are renamed at once (the folder is the
+    unit). Nested groups join the outer one. The command line runs every stage in one group.
+    """
+    if _GROUP.get() is not None:
+        yield
+        return
+    pending: list = []
+    token = _GROUP.set(pending)
+    try:
+        yield
+    except BaseException:
+        _GROUP.reset(token)
+        for item in pending:
+            item.discard()
+        raise
+    _GROUP.reset(token)
+    done = []
+    try:
+        for item in pending:
+            item.commit()
+            done.append(item)
+    except BaseException:
+        for item in reversed(done):
+            with contextlib.suppress(OSError):
+                item.rollback()
+        for item in pending[len(done):]:
+            item.discard()
+        raise
+    for item in done:
+        item.finish()
+
+
+@contextlib.contextmanager
+def written_at_once():
+    """Inside an :func:`output_group`, a block whose outputs go in place as soon as each is complete: what a
+    failing stage writes to show what it did (a diverged ``track``'s partial file) before it exits 1."""
+    token = _GROUP.set(None)
+    try:
+        yield
+    finally:
+        _GROUP.reset(token)
+
+
 @contextlib.contextmanager
 def atomic_path(path, suffix=None):
-    """Yield a temporary path beside ``path``; rename it over ``path`` only if the block succeeds.
+    """Yield a temporary path beside ``path``; rename it over ``path`` only if the block succeeds (inside an
+    :func:`output_group`, when the group's block does).
 
     The temporary name is ``.<name>.<random><suffix>`` (hidden, so folder listings skip it); missing parent
     folders are created; the final file gets the ordinary permissions of the umask. A destination that cannot be
@@ -147,10 +256,20 @@ def atomic_path(path, suffix=None):
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        raise
+    item = _PendingFile(Path(tmp), path)
+    group = _GROUP.get()
+    if group is not None:
+        group.append(item)
+        return
+    item.keep_backup = False
+    try:
+        item.commit()
+    except BaseException:
+        item.discard()
         raise
 
 
@@ -199,6 +318,7 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     except OSError as exc:
         raise _unwritable(path, exc) from None
+    token = _GROUP.set(None)     # files written into the temporary folder go in at once: the folder is the unit
     try:
         yield tmp
         info = {"producer": producer, "heartcv_version": __version__}
@@ -210,28 +330,70 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
         info["stat"] = {q.relative_to(tmp).as_posix(): [q.lstat().st_size, q.lstat().st_mtime_ns] for q in files}
         (tmp / MANIFEST_NAME).write_text(json.dumps(plain(info), indent=1, sort_keys=True) + "\n", encoding="utf-8")
         os.chmod(tmp, 0o777 & ~_umask())
-        old = None
-        try:
-            if path.exists():
-                check_output_folder(path, producer)  # still ours (checked again: the block may have taken long)
-                old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
-                os.rmdir(old)
-                os.replace(path, old)
-            os.replace(tmp, path)
-        except OSError as exc:
-            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOENT):   # another run renamed in between
-                raise ConcurrentWrite(path) from None
-            raise
-        if old is not None:
-            shutil.rmtree(old, onerror=lambda *_: None)
-            if old.exists():
-                import logging
-
-                logging.getLogger(__name__).warning("%s: the replaced folder could not be removed entirely (%s "
-                                                    "left; permissions?)", path, old)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        _GROUP.reset(token)
+    item = _PendingFolder(tmp, path, producer)
+    group = _GROUP.get()
+    if group is not None:
+        group.append(item)
+        return
+    try:
+        item.commit()
+    except BaseException:
+        item.discard()
+        raise
+    item.finish()
+
+
+class _PendingFolder:
+    """A finished temporary folder waiting to replace its destination (:func:`atomic_folder`)."""
+
+    def __init__(self, tmp: Path, path: Path, producer: str):
+        self.tmp, self.path, self.producer, self.old = tmp, path, producer, None
+
+    def commit(self) -> None:
+        try:
+            if self.path.exists():
+                # still ours (checked again: the stage may have run long)
+                check_output_folder(self.path, self.producer)
+                old = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.old-", dir=self.path.parent))
+                os.rmdir(old)
+                os.replace(self.path, old)
+                self.old = old
+            os.replace(self.tmp, self.path)
+        except OSError as exc:
+            if self.old is not None:    # the previous output back where it was, unless another run's is there now
+                with contextlib.suppress(OSError):
+                    os.replace(self.old, self.path)
+                    self.old = None
+                self.finish()
+            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOENT):   # another run renamed in between
+                raise ConcurrentWrite(self.path) from None
+            raise
+
+    def rollback(self) -> None:
+        aside = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.failed-", dir=self.path.parent))
+        os.rmdir(aside)
+        os.replace(self.path, aside)
+        if self.old is not None:
+            os.replace(self.old, self.path)
+            self.old = None
+        shutil.rmtree(aside, ignore_errors=True)
+
+    def finish(self) -> None:
+        if self.old is not None:
+            shutil.rmtree(self.old, onerror=lambda *_: None)
+            if self.old.exists():
+                import logging
+
+                logging.getLogger(__name__).warning("%s: the replaced folder could not be removed entirely (%s "
+                                                    "left; permissions?)", self.path, self.old)
+
+    def discard(self) -> None:
+        shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 # =====================================================================================================================

@@ -41,7 +41,7 @@ from .measurements import MeasurementSet
 from .registration import MIN_POINTS, Registration, _apply, _fit_surface, _inside, _pose
 
 __all__ = ["ObservedPatch", "fit_observed_patch", "MARGIN", "QUANTILE", "geometry_to_dict", "geometry_from_dict",
-           "view_extent", "view_within_patch"]
+           "view_extent", "view_within_patch", "check_view_scale", "MAX_VIEW_M"]
 
 MARGIN = 2.0
 """Patch extent over the observed region's extent (per axis): the view covers the central half of the patch."""
@@ -124,6 +124,22 @@ def view_extent(meas: MeasurementSet, frames: int = 10) -> np.ndarray:
     return np.sort(ext)[::-1]
 
 
+MAX_VIEW_M = 0.5
+"""Largest extent of an observed heart surface (m): an adult human heart is about 12 cm long, a horse's about 25;
+a wider view is positions in other units than metres (millimetres: a 3-cm view reads 30 m)."""
+
+
+def check_view_scale(meas: MeasurementSet, frames: int = 10) -> None:
+    """InputError (field ``reference``) when the surface seen in the first ``frames`` frames spans more than
+    :data:`MAX_VIEW_M`: no heart's surface does; positions in millimetres do (a fit would place a patch tens of
+    metres wide and report it as converged)."""
+    ext = view_extent(meas, frames)
+    if ext[0] > MAX_VIEW_M:
+        raise InputError(None, f"the observed surface spans {ext[0]:.3g} x {ext[1]:.3g} m; a heart's surface spans "
+                               f"centimetres (at most {MAX_VIEW_M:g} m): are the positions in millimetres? "
+                               "Measurement files hold metres", "reference")
+
+
 def view_within_patch(meas: MeasurementSet, geometry: PatchGeometry, frames: int = 10) -> bool:
     """Whether the observed surface fits inside the model's patch (each sorted extent at most the patch's): an
     endoscope's view of a few centimetres, onto which the patch is fitted (:func:`fit_observed_patch`), rather than
@@ -152,6 +168,7 @@ def fit_observed_patch(meas: MeasurementSet, template: PatchGeometry, *, frames:
     """
     if meas.frame != "rig":
         raise ValueError(f"measurements: frame 'rig' expected, got {meas.frame!r}")
+    check_view_scale(meas, frames)
     idx, X = _reference_points(meas, frames)
     if idx.size < MIN_POINTS:
         raise InputError(None, f"{idx.size} points seen in two of the first {frames} frames: at least {MIN_POINTS} "

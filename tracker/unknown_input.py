@@ -137,6 +137,13 @@ class HeartRate:
     left_out: tuple = ()
 
 
+def _undersampled(dt: float, lo: float, what: str) -> str:
+    """The reason a frame interval shows no rate in a band starting at ``lo`` Hz (above its Nyquist frequency)."""
+    return (f"a frame interval of {dt:.3g} s ({1 / dt:.3g} frames per second) shows no frequency above "
+            f"{0.5 / dt:.3g} Hz, below the {lo:g}-Hz low end of the {what}' band (are the times in milliseconds? "
+            "measurement files hold seconds)")
+
+
 def seen_share(positions) -> np.ndarray:
     """Per track (K, P, 3 with NaN where unseen): the share of the frames holding any observation in which it is
     seen. A frame where nothing is seen (a frame the recording lacks: dropped, repeated, unreadable) counts against
@@ -417,6 +424,8 @@ def _heart_rate(times, positions, harmonics: int = HARMONICS, band=BAND_HZ, *,
         raise NoHeartbeat(f"{K} frames: too short to show a heartbeat")
     dt = float(np.median(np.diff(t)))
     duration = K * dt
+    if 0.5 / dt < lo:
+        raise NoHeartbeat(_undersampled(dt, lo, "heart rates"))
     if duration < MIN_BEATS / hi:
         raise NoHeartbeat(f"{duration:.3g} s: shorter than {MIN_BEATS:g} heartbeats even at {hi * 60:g} bpm")
     Y, n_points = filled_tracks(t, positions)
@@ -570,6 +579,8 @@ def estimate_respiration(times, translation, heart_rate_hz: float, harmonics: in
                                         f"respiration rate")
     dt = float(np.median(np.diff(t)))
     duration = K * dt
+    if 0.5 / dt < lo:
+        return Respiration(None, cycles=duration * hi, reason=_undersampled(dt, lo, "respiration rates"))
     if duration * hi < MIN_BREATHS:
         return Respiration(None, cycles=duration * hi,
                            reason=f"{duration:.3g} s hold fewer than {MIN_BREATHS:g} breaths even at "

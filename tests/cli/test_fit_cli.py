@@ -1,5 +1,6 @@
 """CLI: heartcv fit and heartcv track --params (CliRunner, exit codes, artifacts read back)."""
 
+from dataclasses import replace
 import json
 from pathlib import Path
 
@@ -233,7 +234,31 @@ def test_rig_frame_registration_that_does_not_converge_exits_1(files, tmp_path, 
     r = CliRunner().invoke(main, ["fit", str(rig), "--model", PAPER, "-o", str(out)])
     assert r.exit_code == 1
     assert f"registration onto the patch did not converge (ok); nothing written to {out}" in r.output
+    assert "--patch observed fits the patch to the surface they see" in r.output.replace("\n", " ")
     assert fake_registration[0] == [10] and not out.exists()
+
+
+def test_rig_frame_positions_in_millimetres_exit_2_before_any_placement(files, tmp_path, fake_registration):
+    """The same rig-frame file scaled by 1000 (millimetres written as metres): its view spans tens of metres, no
+    heart's surface does; exit 2 naming the file and `reference`, for a recorded and an estimated input alike
+    (the latter had fitted a 31-m patch and written it), and the registration never ran."""
+    m = read_measurements(files["patch"])
+    rig = _transform(RIG_FROM_PATCH, m, np.arange(m.n_points), "rig")
+    mm = tmp_path / "mm.npz"
+    write_measurements(mm, replace(rig, positions=1e3 * rig.positions, reference=1e3 * rig.reference,
+                                   covariances=1e6 * rig.covariances))
+    for extra in ([], ["--input", "estimate"], ["--patch", "observed"]):
+        out = tmp_path / "p.yaml"
+        r = CliRunner().invoke(main, ["fit", str(mm), "--model", PAPER, "-o", str(out), *extra])
+        assert r.exit_code == 2, (extra, r.output)
+        assert f"{mm}: reference: the observed surface spans" in r.output and "millimetres" in r.output
+        assert not out.exists() and fake_registration[0] == []
+    # the file in metres passes the check (the same view, 1000 times smaller)
+    from heartcv.tracker.patch_fit import check_view_scale, view_extent
+
+    check_view_scale(rig)
+    assert 1e-3 < view_extent(rig)[0] < 0.5 and np.isclose(view_extent(read_measurements(mm))[0],
+                                                             1e3 * view_extent(rig)[0])
 
 
 def test_rig_frame_track_needs_a_registration_in_params(files, params, tmp_path, fake_registration):

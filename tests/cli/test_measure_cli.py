@@ -170,6 +170,19 @@ def test_fps_given_replaces_timestamps_with_a_warning(case):
     assert read_measurements(case["out"] / "ts.npz").meta["inputs_hash"]["timestamps"] == \
         file_hash(case["seq"] / "timestamps.csv")
     assert "timestamps" not in read_measurements(case["out"] / "fps.npz").meta["inputs_hash"]
+    assert "milliseconds" not in res.stderr
+    # the same times in milliseconds under time_s: read as written (seconds), with a warning naming the file
+    rows = _read_csv(case["seq"] / "timestamps.csv")
+    cols = list(rows[0])
+    (case["seq"] / "timestamps.csv").write_text(",".join(cols) + "\n" + "".join(
+        ",".join(str(1e3 * float(r[c])) if c == "time_s" else r[c] for c in cols) + "\n" for r in rows))
+    res = _measure(case, "--frames", 3, out=case["out"] / "ms.npz")
+    assert res.exit_code == 2 and "inputs.csv: time_s: the inputs cover 0..0.3 s" in res.output  # its inputs' clock
+    (case["seq"] / "inputs.csv").unlink()
+    res = _measure(case, "--frames", 3, out=case["out"] / "ms.npz")
+    assert res.exit_code == 0, res.output
+    assert "timestamps.csv: a median frame interval of" in res.stderr and "milliseconds?" in res.stderr
+    assert np.allclose(read_measurements(case["out"] / "ms.npz").times, 1e3 * (np.asarray(stamps[:3]) - stamps[0]))
 
 
 # -- a good run -------------------------------------------------------------------------------------------------

@@ -408,6 +408,31 @@ def test_pair_instants_by_stem_then_by_frame_number():
         pair_instants(["left", "right"], [files("l1-1", "l2-1"), files("r-1")])    # a number twice in a camera
 
 
+def test_frames_named_by_decimal_seconds_are_in_time_order(tmp_path):
+    """Stems that are all decimal numbers (a recorder naming frames by their time in seconds) sort by value, as a
+    brute-force sort of the floats does; a folder of them lists in the same order; any other stem among them
+    brings back natural order (img2 before img10)."""
+    from pathlib import Path
+
+    from heartcv.io import list_image_folder, pair_instants, sort_names
+
+    rng = np.random.default_rng(3)
+    times = np.round(np.cumsum(rng.uniform(0.01, 0.3, 40)), 3)
+    stems = [f"{t:.3f}".rstrip("0").rstrip(".") if t % 1 else f"{t:.1f}" for t in times]
+    shuffled = list(rng.permutation(stems))
+    assert [float(x) for x in sort_names(shuffled)] == sorted(float(x) for x in stems)
+    inst, _, by = pair_instants(["l", "r"], [[Path(f"/x/{s}.png") for s in shuffled]] * 2)
+    assert by == "stem" and inst == sort_names(stems) and inst[:3] == [stems[0], stems[1], stems[2]]
+    for s in shuffled[:12]:
+        (tmp_path / f"{s}.png").write_bytes(b"")
+    assert [p.stem for p in list_image_folder(tmp_path)] == sorted(shuffled[:12], key=float)
+    # a ROS-style stamp with nanoseconds keeps its precision
+    assert sort_names(["1613501234.000000002", "1613501234.000000001"]) == ["1613501234.000000001",
+                                                                            "1613501234.000000002"]
+    assert sort_names(["0.2", "0.04", "img10", "img2"]) == ["0.2", "0.04", "img2", "img10"]   # natural: not all numbers
+    assert sort_names(["10", "9", "100"]) == ["9", "10", "100"]
+
+
 def test_atomic_path_keeps_old_file_on_failure(tmp_path):
     path = tmp_path / "sub" / "f.txt"
     with atomic_path(path) as tmp:

@@ -132,6 +132,95 @@ def test_atomic_folder_raced_by_another_run_says_so(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["study"] and (out / "theirs").read_text() == "x"
 
 
+def _listing(root):
+    return sorted((p.relative_to(root).as_posix(), p.read_text() if p.is_file() else None) for p in root.rglob("*"))
+
+
+def _previous_run(tmp_path):
+    (tmp_path / "m.csv").write_text("heartcv 1\n")
+    with F.atomic_folder(tmp_path / "ov", "heartcv measure --overlay") as tmp:
+        (tmp / "f.png").write_text("old")
+    return _listing(tmp_path)
+
+
+def test_output_group_puts_outputs_in_place_together_or_not_at_all(tmp_path):
+    """Outputs of one stage: none renamed before the group's block ends; a failure or Ctrl-C half-way leaves the
+    previous run's outputs byte for byte and no temporary file; success replaces all three."""
+    before = _previous_run(tmp_path)
+    for exc in (RuntimeError("overlay failed"), KeyboardInterrupt()):
+        with pytest.raises(type(exc)):
+            with F.output_group():
+                with F.atomic_path(tmp_path / "m.csv") as tmp:
+                    tmp.write_text("heartcv 2\n")
+                with F.atomic_path(tmp_path / "new.npz") as tmp:
+                    tmp.write_text("n")
+                assert (tmp_path / "m.csv").read_text() == "heartcv 1\n" and not (tmp_path / "new.npz").exists()
+                with F.atomic_folder(tmp_path / "ov", "heartcv measure --overlay") as tmp:
+                    with F.atomic_path(tmp / "inner.txt") as t2:    # inside the folder: renamed at once
+                        t2.write_text("i")
+                    assert (tmp / "inner.txt").read_text() == "i"
+                raise exc
+        assert _listing(tmp_path) == before
+    with F.output_group():
+        with F.atomic_path(tmp_path / "m.csv") as tmp:
+            tmp.write_text("heartcv 2\n")
+        with F.atomic_folder(tmp_path / "ov", "heartcv measure --overlay") as tmp:
+            (tmp / "f.png").write_text("new")
+    assert (tmp_path / "m.csv").read_text() == "heartcv 2\n" and (tmp_path / "ov" / "f.png").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv", "ov"]
+
+
+def test_output_group_undoes_the_renames_done_when_a_later_one_fails(tmp_path, monkeypatch):
+    """The second of three renames fails (a full disk, say): the first output is put back from its hard link, the
+    folder from where it was moved; nothing hidden is left behind."""
+    import errno
+
+    before = _previous_run(tmp_path)
+    real = os.replace
+
+    def failing(src, dst):
+        if Path(dst) == tmp_path / "ov" and ".tmp-" in str(src):
+            raise OSError(errno.EIO, "Input/output error", str(dst))
+        return real(src, dst)
+
+    monkeypatch.setattr(F.os, "replace", failing)
+    with pytest.raises(OSError, match="Input/output"):
+        with F.output_group():
+            with F.atomic_path(tmp_path / "m.csv") as tmp:
+                tmp.write_text("heartcv 2\n")
+            with F.atomic_path(tmp_path / "new.npz") as tmp:
+                tmp.write_text("n")
+            with F.atomic_folder(tmp_path / "ov", "heartcv measure --overlay") as tmp:
+                (tmp / "f.png").write_text("new")
+    assert _listing(tmp_path) == before
+
+
+def test_a_failing_stage_on_the_command_line_leaves_its_earlier_outputs(tmp_path, monkeypatch):
+    """End to end through the command line: model simulate writes its measurement file, then fails writing the
+    truth file; the previous run's measurement file is unchanged and no new file appears."""
+    from heartcv.tracker import io as tio
+
+    model = tmp_path / "m.yaml"
+    model.write_bytes((Path(__file__).resolve().parents[2] / "sample_sequences" / "paper_patch.yaml").read_bytes())
+    args = ["model", "simulate", str(model), "-o", str(tmp_path / "meas.npz"), "--truth", str(tmp_path / "t.npz"),
+            "--duration", "0.2", "--seed", "1"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    before = _listing_bytes(tmp_path)
+
+    def broken(*a, **k):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(tio, "write_truth", broken, raising=True)
+    r = CliRunner().invoke(main, args[:-1] + ["2"])
+    assert r.exit_code == 1 and "internal error" in r.output
+    assert _listing_bytes(tmp_path) == before
+
+
+def _listing_bytes(root):
+    return sorted((p.name, p.read_bytes()) for p in root.iterdir())
+
+
 # -- output safety ------------------------------------------------------------------------------------------------
 def test_refuse_overlap_same_file_link_and_containing_folder(tmp_path):
     inp = tmp_path / "data" / "meas.npz"

@@ -142,6 +142,12 @@ def test_no_heartbeat_short_or_aperiodic():
     rng = np.random.default_rng(1)
     with pytest.raises(NoHeartbeat, match="no periodic motion"):
         estimate_heart_rate(np.arange(250) / 25.0, rng.standard_normal((250, 20, 3)) * 1e-4)
+    # the same beating tracks with their times in milliseconds (a 40-s frame interval): no heart rate can show
+    # below a Nyquist frequency of 0.0125 Hz; the reason says so (it had said "too short")
+    t, y = _tracks(1.0, K=250)
+    assert abs(estimate_heart_rate(t, y).frequency_hz - 1.0) < 0.01
+    with pytest.raises(NoHeartbeat, match=r"a frame interval of 40 s .* below the 0.5-Hz low end .* milliseconds"):
+        estimate_heart_rate(1e3 * t, y)
 
 
 def _drift(K, seed, P=20, fps=25.0):
