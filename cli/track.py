@@ -187,6 +187,16 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     meas = read_measurements(measurements)
     file_ids = np.asarray(meas.point_ids)
     m = load_model(model_file)
+    if estimator not in BASELINES:     # before any work (the offsets' random walk runs KF passes)
+        from heartcv.tracker.tracking import frame_interval
+
+        try:
+            dt = frame_interval(m, meas)
+        except InputError as exc:
+            raise exc.in_file(measurements) from None
+        if dt > 1.0:
+            log.warning("%s: times: a frame interval of %.3g s: a heartbeat (at least 0.5 Hz) needs frames under 1 s "
+                        "apart; are the times in milliseconds? (measurement files hold seconds)", measurements, dt)
     fitted = read_parameters(params_file) if params_file is not None else None
     options = _joint_options(m, model_file, estimator, nodes, truncation, joseph)
     meta = {"producer": "heartcv track", "model": str(model_file),

@@ -1068,8 +1068,8 @@ class FrameReader:
     def _read_file(self, c, path, k=None):
         if path is None:
             name = self.source.frame_names[k] if k is not None else "?"
-            return None, (f"{self.source.folder / self.source.camera_names[c] / name}.*: no image for instant "
-                          f"{name} in this camera")
+            # (the folder, not a file name: instants paired by number are named after another camera's files)
+            return None, f"{self.source.folder / self.source.camera_names[c]}: no image for instant {name!r}"
         try:
             return read_image(path, self.mode, self.sizes[c]), None
         except HeartcvIOError as exc:

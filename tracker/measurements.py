@@ -8,7 +8,7 @@ import numpy as np
 
 from .files import InputError
 
-__all__ = ["MeasurementSet", "EstimateSet", "frames_within"]
+__all__ = ["MeasurementSet", "EstimateSet", "frames_within", "SI_UNITS"]
 
 
 def _frozen(a) -> bool:
@@ -54,6 +54,10 @@ def _first_bad_covariance(cov, seen):
             return start + int(np.flatnonzero(bad)[0]), "singular or not positive definite"
     return None
 
+
+SI_UNITS = {"pressure": "Pa", "active_tension": "Pa", "respiration_x": "m", "respiration_y": "m", "respiration_z": "m"}
+"""The unit of each input the model reads (``meta.input_units`` may leave it empty; any other unit is refused:
+units were recorded but not checked before 2026-11-29, and a pressure in kPa was read as pascals)."""
 
 @dataclass(frozen=True)
 class MeasurementSet:
@@ -127,6 +131,12 @@ class MeasurementSet:
         units = tuple(self.input_units) or tuple("" for _ in names)
         if len(names) != u.shape[1] or len(units) != len(names):
             raise InputError(None, f"{u.shape[1]} names and units expected", "input_names/input_units")
+        for name, unit in zip(names, units):
+            si = SI_UNITS.get(str(name))
+            if si is not None and str(unit).strip() and str(unit).strip().lower() != si.lower():
+                raise InputError(None, f"{name!r} in {unit!r}: the inputs the model reads are in SI units ({name} in "
+                                       f"{si}); convert the column (heartcv measure converts inputs.csv's "
+                                       "pressure_kpa, pressure_mmhg, respiration_x_mm)", "meta.input_units")
         if self.frame not in ("patch", "rig"):
             raise InputError(None, f"'patch' or 'rig' expected, got {self.frame!r}", "frame")
         views = _ro(np.zeros((K, P), np.int64) if self.views is None else self.views, np.int64)

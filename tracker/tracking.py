@@ -97,9 +97,11 @@ def frame_interval(model: PatchModel, meas: MeasurementSet) -> float:
     if dts.size == 0:
         return model.config.dt
     dt = float(np.median(dts))
-    if np.abs(dts - dt).max() > 1e-6 * dt:
-        raise InputError(None, "the estimators need a constant frame interval (equally spaced frame times)",
-                         "times")
+    worst = float(np.abs(dts - dt).max())
+    if worst > 1e-6 * dt:
+        raise InputError(None, f"the estimators need a constant frame interval (equally spaced frame times): an "
+                               f"interval differs from the median {dt:.6g} s by {worst:.3g} s (more than 1e-6 of "
+                               "it; times in single precision round by that much: float64 expected)", "times")
     return dt
 
 

@@ -151,6 +151,41 @@ def test_missing_input_column_exits_2(runner, tmp_path):
     assert res.exit_code == 2 and "pressure" in res.stderr
 
 
+def test_times_and_units_a_hand_built_file_gets_wrong_are_named(runner, tmp_path):
+    """A hand-built measurement file: times in single precision (evenly spaced, but rounded past the estimators'
+    1e-6 tolerance) exit 2 naming `times` and float64 before any work; a pressure recorded in kPa exits 2 naming
+    `meta.input_units` (it was read as pascals); times in milliseconds run, with a warning."""
+    from dataclasses import replace
+
+    from heartcv.tracker.io import write_measurements
+
+    meas = tmp_path / "m.npz"
+    _json(runner.invoke(main, ["model", "simulate", PAPER, "--duration", "2", "-o", str(meas), "--json"]))
+    m = read_measurements(meas)
+    t32 = (100.0 + m.times).astype(np.float32).astype(np.float64)       # a clock that does not start at 0
+    assert np.abs(np.diff(t32) - np.median(np.diff(t32))).max() > 1e-6 * np.median(np.diff(t32))
+    cases = {"t32": (replace(m, times=t32), "times: the estimators need a constant frame interval"),
+             "kpa": (replace(m, inputs=m.inputs / 1e3), "meta.input_units: 'pressure' in 'kPa'")}
+    for name, (bad, message) in cases.items():
+        path = tmp_path / f"{name}.npz"
+        write_measurements(path, bad)
+        if name == "kpa":   # (a MeasurementSet refuses it: the file is edited as a person's script would write it)
+            data = dict(np.load(path))
+            meta = json.loads(data["meta_json"].tobytes())
+            meta["input_units"][0] = "kPa"
+            data["meta_json"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+            np.savez(path, **data)
+        res = runner.invoke(main, ["-v", "track", str(path), "--model", PAPER, "-o", str(tmp_path / "e.npz")])
+        assert res.exit_code == 2 and f"{path}: {message}" in res.stderr, res.output
+        assert "KF runs" not in res.stderr and not (tmp_path / "e.npz").exists()
+    res = runner.invoke(main, ["track", str(tmp_path / "t32.npz"), "--model", PAPER, "-o", str(tmp_path / "e.npz")])
+    assert "float64 expected" in res.stderr.replace("\n", " ")
+    write_measurements(tmp_path / "ms.npz", replace(m, times=1e3 * m.times))
+    res = runner.invoke(main, ["track", str(tmp_path / "ms.npz"), "--model", PAPER, "--estimator", "kf",
+                               "--track-offsets", "none", "-o", str(tmp_path / "e.npz")])
+    assert "a frame interval of 33.3 s" in res.stderr and "milliseconds?" in res.stderr, res.output
+
+
 def test_help_is_fast_and_lists_commands(runner):
     res = runner.invoke(main, ["--help"])
     assert res.exit_code == 0 and "model" in res.output and "track" in res.output
