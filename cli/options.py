@@ -28,11 +28,11 @@ MAX_IMAGE_SIDE = 16384     # pixels
 
 
 class IntPair(click.ParamType):
-    """``AxB`` (e.g. ``11x8`` or ``360x288``) -> (a, b), each in 1 .. ``limit`` (an int, or a callable giving it,
-    for limits that live in modules imported only when the option is used)."""
+    """``AxB`` (e.g. ``11x8`` or ``360x288``) -> (a, b), each in ``low`` .. ``limit`` (an int, or a callable giving
+    it, for limits that live in modules imported only when the option is used)."""
 
-    def __init__(self, metavar: str, example: str, limit, unit: str = ""):
-        self.name, self.example, self.limit, self.unit = metavar, example, limit, unit
+    def __init__(self, metavar: str, example: str, limit, unit: str = "", low: int = 1):
+        self.name, self.example, self.limit, self.unit, self.low = metavar, example, limit, unit, low
 
     def convert(self, value, param, ctx):
         if isinstance(value, tuple):
@@ -43,8 +43,8 @@ class IntPair(click.ParamType):
         except ValueError:
             self.fail(f"{self.name} expected (e.g. {self.example}), got {value!r}", param, ctx)
         hi = self.limit() if callable(self.limit) else self.limit
-        if not (1 <= a <= hi and 1 <= b <= hi):
-            self.fail(f"{a}x{b}: 1 to {hi}{self.unit} each way expected", param, ctx)
+        if not (self.low <= a <= hi and self.low <= b <= hi):
+            self.fail(f"{a}x{b}: {self.low} to {hi}{self.unit} each way expected", param, ctx)
         return a, b
 
 

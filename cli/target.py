@@ -18,8 +18,8 @@ def _max_squares():
     return MAX_SQUARES
 
 
-# COLSxROWS -> (cols, rows), each in 1 .. MAX_SQUARES (TargetSpec refuses fewer than 3 with the reason)
-GridSize = functools.partial(IntPair, "COLSxROWS", "11x8", _max_squares)
+# COLSxROWS -> (cols, rows), each in 3 .. MAX_SQUARES (a target file's fewer than 3: TargetSpec refuses them)
+GridSize = functools.partial(IntPair, "COLSxROWS", "11x8", _max_squares, low=3)
 
 
 @click.command()

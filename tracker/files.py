@@ -147,6 +147,9 @@ class _PendingFile:
 
     def commit(self) -> None:
         self.existed = os.path.lexists(self.path)
+        if self.existed:    # a file replaced keeps its permissions (a person's chmod o-r survives a rerun)
+            with contextlib.suppress(OSError):
+                os.chmod(self.tmp, os.stat(self.path).st_mode & 0o7777)
         if self.existed and self.keep_backup:
             # a second name for the file being replaced, so that a later failure can put it back
             backup = self.path.parent / f".{self.path.name}.old-{secrets.token_hex(6)}"
@@ -242,7 +245,8 @@ def atomic_path(path, suffix=None):
     :func:`output_group`, when the group's block does).
 
     The temporary name is ``.<name>.<random><suffix>`` (hidden, so folder listings skip it); missing parent
-    folders are created; the final file gets the ordinary permissions of the umask. A destination that cannot be
+    folders are created; the final file gets the ordinary permissions of the umask, or the permissions of the file
+    it replaces. A destination that cannot be
     written (a parent that is a file, no permission, read-only file system) raises :class:`InputError` naming it
     before anything is computed into the temporary file.
     """

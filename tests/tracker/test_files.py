@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -47,6 +48,24 @@ def test_atomic_path_replaces_only_on_success(tmp_path):
     with F.atomic_path(p) as tmp:
         tmp.write_text("new")
     assert p.read_text() == "new" and sorted(os.listdir(tmp_path)) == ["x.txt"]
+
+
+def test_a_replaced_file_keeps_its_permissions(tmp_path):
+    """A new file gets 0666 minus the umask; a rerun replacing it keeps the mode a person gave it (0640)."""
+    p = tmp_path / "params.yaml"
+    old = os.umask(0o022)
+    try:
+        with F.atomic_path(p) as tmp:
+            tmp.write_text("1")
+        assert p.stat().st_mode & 0o777 == 0o644
+        os.chmod(p, 0o640)
+        for group in (contextlib.nullcontext(), F.output_group()):
+            with group:
+                with F.atomic_path(p) as tmp:
+                    tmp.write_text("2")
+            assert p.stat().st_mode & 0o777 == 0o640 and p.read_text() == "2"
+    finally:
+        os.umask(old)
 
 
 def test_atomic_path_unwritable_destination_is_an_input_error(tmp_path):
