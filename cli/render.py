@@ -127,6 +127,7 @@ def calibration(ctx, scene_file, output, seed, workers, views, as_json):
     from heartcv.tracker.files import atomic_folder
 
     scene, files = _load_scene(scene_file, seed, output)
+    _check_other_file(scene_file, files, "motion.model")
     if views is not None:
         scene = replace(scene, calibration=replace(scene.calibration, views=views))
     target_path = files["calibration.target"]
@@ -158,6 +159,17 @@ def calibration(ctx, scene_file, output, seed, workers, views, as_json):
         emit_json(summary)
     else:
         log.info("wrote %s (%d views x %d cameras) in %.1f s", output, setup.n_views, len(names), wall)
+
+
+def _check_other_file(scene_file, files, field):
+    """Exit 2 for a missing or invalid file of the scene that this kind of render does not use (a sequence's
+    calibration target, a calibration's model): the scene file is checked as a whole, whichever part is
+    rendered, so an error in it shows on the first render, not on the other kind's weeks later."""
+    from heartcv.io import read_target
+    from heartcv.tracker.io import read_model
+
+    if files.get(field) is not None:
+        _named_file(scene_file, field, read_target if field == "calibration.target" else read_model, files[field])
 
 
 def _prepare_sequence(scene_file, scene, cfg, n_workers):
@@ -195,6 +207,7 @@ def sequence(ctx, scene_file, output, seed, workers, frames, stiffness_cycle, as
     from heartcv.tracker.io import read_model
 
     scene, files = _load_scene(scene_file, seed, output)
+    _check_other_file(scene_file, files, "calibration.target")
     if stiffness_cycle is not None:
         scene = replace(scene, motion=replace(scene.motion, stiffness_amplitude=float(stiffness_cycle)))
     _require_embree()
@@ -205,6 +218,9 @@ def sequence(ctx, scene_file, output, seed, workers, frames, stiffness_cycle, as
     setup = _prepare_sequence(scene_file, scene, cfg, n_workers)
     t_prep = time.perf_counter() - t0
     count = setup.n_frames if frames is None else min(frames, setup.n_frames)
+    if frames is not None and frames > setup.n_frames:
+        log.warning("--frames %d: the scene holds %d frames (motion.duration_s %g s at %g Hz); rendering those",
+                    frames, setup.n_frames, scene.motion.duration_s, scene.motion.frame_rate_hz)
     names = [c.name for c in setup.rig.cameras]
     with atomic_folder(output, PRODUCER, {"kind": "sequence"}) as tmp:
         t1 = time.perf_counter()

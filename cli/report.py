@@ -29,9 +29,10 @@ LEVEL = 0.95  # NIS bands
 @click.argument("estimates", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False),
               help="Ground truth: `heartcv model simulate --truth` file (parameters and point positions) or the "
-                   "truth.npz of `heartcv render sequence` (parameters only).")
+                   "truth.npz of `heartcv render sequence` (parameters; with --measurements also the truth error).")
 @click.option("--measurements", "meas_file", type=click.Path(dir_okay=False),
-              help="The measurement file the estimates were made from (for the measurement noise level).")
+              help="The measurement file the estimates were made from (the measurement noise level, the tracks' "
+                   "own motion, the truth error of a render truth).")
 @click.option("-o", "--output", type=click.Path(file_okay=True), required=True,
               help="Report folder (created; replaces only a folder that heartcv report wrote, never one holding an "
                    "input).")
@@ -124,7 +125,9 @@ def _provenance(runs, truth_file, meas_file) -> dict:
 
 
 def _check_images(images) -> None:
-    """Exit 2 for an --image that is missing or not a PNG."""
+    """Exit 2 for an --image that is missing, not a PNG, or a PNG that does not decode (cut short, damaged)."""
+    from heartcv.io import HeartcvIOError, read_image
+
     for i, p in enumerate(images):
         path = Path(p)
         if not path.is_file():
@@ -132,6 +135,10 @@ def _check_images(images) -> None:
         with open(path, "rb") as f:
             if f.read(8) != b"\x89PNG\r\n\x1a\n":
                 raise BadInput(f"--image #{i + 1}: {p}: not a PNG file")
+        try:
+            read_image(path, "unchanged")
+        except HeartcvIOError as exc:
+            raise BadInput(f"--image #{i + 1}: {p}: {exc.reason}") from None
 
 
 def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases=None, images=()) -> dict:

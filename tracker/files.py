@@ -133,6 +133,17 @@ def _umask() -> int:
     return mask
 
 
+def _hidden(name: str, tag: str, tail: int) -> str:
+    """The prefix ``.<name><tag>`` of a hidden temporary name beside ``name``, the name cut short so that the
+    prefix and ``tail`` more bytes (the random part, a suffix) stay within :data:`NAME_MAX` bytes: an output
+    name of up to 255 bytes can be written."""
+    room = NAME_MAX - tail - len(os.fsencode(tag)) - 1
+    raw = os.fsencode(name)
+    if len(raw) > room:
+        name = raw[:max(room, 1)].decode("utf-8", "ignore") or "x"
+    return f".{name}{tag}"
+
+
 # outputs of the running stage put in place together at its end (output_group); None outside one
 _GROUP: contextvars.ContextVar = contextvars.ContextVar("heartcv_output_group", default=None)
 
@@ -152,7 +163,7 @@ class _PendingFile:
                 os.chmod(self.tmp, os.stat(self.path).st_mode & 0o7777)
         if self.existed and self.keep_backup:
             # a second name for the file being replaced, so that a later failure can put it back
-            backup = self.path.parent / f".{self.path.name}.old-{secrets.token_hex(6)}"
+            backup = self.path.parent / (_hidden(self.path.name, ".old-", 12) + secrets.token_hex(6))
             with contextlib.suppress(OSError):   # (a file system without hard links: no way back, as without a group)
                 os.link(self.path, backup)
                 self.backup = backup
@@ -253,7 +264,9 @@ def atomic_path(path, suffix=None):
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent)
+        suffix = suffix or path.suffix or ".tmp"
+        fd, tmp = tempfile.mkstemp(prefix=_hidden(path.name, ".", 8 + len(os.fsencode(suffix))), suffix=suffix,
+                                   dir=path.parent)
         os.close(fd)
     except OSError as exc:
         raise _unwritable(path, exc) from None
@@ -319,7 +332,7 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
     check_output_folder(path, producer)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=_hidden(path.name, ".tmp-", 8), dir=path.parent))
     except OSError as exc:
         raise _unwritable(path, exc) from None
     token = _GROUP.set(None)     # files written into the temporary folder go in at once: the folder is the unit
@@ -363,7 +376,7 @@ class _PendingFolder:
             if self.path.exists():
                 # still ours (checked again: the stage may have run long)
                 check_output_folder(self.path, self.producer)
-                old = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.old-", dir=self.path.parent))
+                old = Path(tempfile.mkdtemp(prefix=_hidden(self.path.name, ".old-", 8), dir=self.path.parent))
                 os.rmdir(old)
                 os.replace(self.path, old)
                 self.old = old
@@ -379,7 +392,7 @@ class _PendingFolder:
             raise
 
     def rollback(self) -> None:
-        aside = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.failed-", dir=self.path.parent))
+        aside = Path(tempfile.mkdtemp(prefix=_hidden(self.path.name, ".failed-", 8), dir=self.path.parent))
         os.rmdir(aside)
         os.replace(self.path, aside)
         if self.old is not None:
@@ -607,7 +620,10 @@ def check_output_folder(path, producer: str, label: str = "-o/--output") -> None
             raise InputError(path, f"{path.parent} is not a folder", label)
         _check_writable_parent(path, label)
         return
-    if not path.is_dir() or path.is_symlink():
+    if path.is_symlink():
+        raise InputError(path, f"is a symbolic link (to {os.readlink(path)}); not replaced (the link is yours): give "
+                               "the path it points to, or another path", label)
+    if not path.is_dir():
         raise InputError(path, "exists and is not a folder; not replaced", label)
     man = read_manifest(path)
     if man is None or man.get("producer") != producer:

@@ -252,6 +252,9 @@ def _check_report_meta(meta, path, K):
         meta["parameter_overdispersion"] = od
     if meta.get("fit_frames") is not None:
         meta["fit_frames"] = get_field(meta, "fit_frames", "int", path, lo=1, hi=max(K, 1), prefix="meta.")
+    if meta.get("measurement_noise_m") is not None:
+        meta["measurement_noise_m"] = get_field(meta, "measurement_noise_m", "float", path, lo=0, hi=1.0,
+                                                prefix="meta.")
     for key in ("heldout_points", "left_out_points"):
         ids = meta.get(key)
         if ids is not None and (not isinstance(ids, list) or any(
@@ -272,6 +275,9 @@ def read_estimates(path) -> EstimateSet:
     for key in ("nis_dof", "truncation_events"):
         if (data[key] < 0).any():
             raise InputError(path, "counts (integers >= 0) expected, got a negative value", key)
+    for key in ("theta_std", "state_var", "nis", "step_time"):     # (NaN where not defined: allowed)
+        if (data[key] < 0).any():
+            raise InputError(path, f"values >= 0 expected (or NaN), got {float(np.nanmin(data[key])):.3g}", key)
     M = data["phi_mean"].shape[1] if "phi_mean" in data else 0
     est = _meta_str_list(meta, "estimated", path, M if "phi_mean" in data else None)
     from .params import NAMES
@@ -294,6 +300,11 @@ def read_estimates(path) -> EstimateSet:
         if key in meta:
             get_field(meta, key, "bool", path, prefix="meta.")
     _check_report_meta(meta, path, K)
+    held_ids = meta.get("heldout_points")
+    if isinstance(held_ids, list) and not set(held_ids) <= set(data["point_ids"].tolist()):
+        raise InputError(path, "ids of the file's points (point_ids) expected; "
+                               f"{sorted(set(held_ids) - set(data['point_ids'].tolist()))[:5]} are not",
+                         "meta.heldout_points")
     try:
         return EstimateSet(estimator, *(data[k] for k in _EST_ARRAYS), steps, meta,
                            *(data.get(k) for k in _EST_OPTIONAL))

@@ -101,6 +101,9 @@ def sample_board_poses(scene: Scene, rig, target, rng: np.random.Generator):
     centre_b = np.r_[np.asarray(target.squares_origin_m) + np.asarray(target.board_size_m) / 2, 0.0]
     diag = float(np.hypot(*target.board_size_m))
     poses = np.empty((n, 4, 4))
+    if cal.min_corners > int(target.n_corners):
+        raise InputError(None, f"{cal.min_corners}: the target has {target.n_corners} corners; no view can show that "
+                               "many", "calibration.min_corners")
     for i in range(n):
         for _attempt in range(2000):
             psi = rng.uniform(0, 2 * math.pi)
@@ -128,8 +131,10 @@ def sample_board_poses(scene: Scene, rig, target, rng: np.random.Generator):
             break
         else:
             raise InputError(None, f"no pose found for view {i} ({'partial' if partial[i] else 'complete'}) that at "
-                                   "least two cameras see; the board may not fit the field of view (reduce "
-                                   "max_tilt_deg, max_roll_deg or offset_m)", "calibration")
+                                   f"least two cameras see with {cal.min_corners} corners (min_corners) at incidence "
+                                   f"up to {cal.max_incidence_deg:g} deg (max_incidence_deg); the board may not fit "
+                                   f"the field of view at rig.working_distance_m {scene.rig.working_distance_m:g} m: "
+                                   "check those, or reduce max_tilt_deg, max_roll_deg or offset_m", "calibration")
     return poses, partial
 
 

@@ -78,7 +78,9 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     assert json.loads(res.stdout)["heart_rate_hz"] == hr["frequency_hz"]
     assert read_estimates(harm).meta["heart_rate_source"].startswith("parameters file")
     png = tmp_path / "frame.png"
-    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(16))
+    from heartcv.io import write_image
+
+    write_image(png, np.full((6, 9, 3), 90, np.uint8))
     rep = str(tmp_path / "rep")
     res = CliRunner().invoke(main, ["report", out, harm, "--measurements", blind_file, "--image", str(png),
                                     "-o", rep, "--json"])
@@ -175,6 +177,14 @@ def test_fit_estimates_the_input_and_track_uses_it(tmp_path, blind_file):
     res = CliRunner().invoke(main, ["report", out, "--image", str(bad), "-o", str(tmp_path / "rep2")])
     assert res.exit_code == 2 and "--image #1" in res.output and "not a PNG" in res.output
     assert not (tmp_path / "rep2").exists()
+    # a PNG signature alone, and a PNG cut short, were copied into the report and embedded (exit 0)
+    good = png
+    for name, data in (("sig.png", good.read_bytes()[:8]), ("cut.png", good.read_bytes()[:-20])):
+        (tmp_path / name).write_bytes(data)
+        res = CliRunner().invoke(main, ["report", out, "--image", str(good), "--image", str(tmp_path / name),
+                                        "-o", str(tmp_path / "rep2")])
+        assert res.exit_code == 2 and f"--image #2: {tmp_path / name}: " in res.output, res.output
+        assert not (tmp_path / "rep2").exists()
 
 
 def test_fit_exits_1_without_a_heartbeat(tmp_path, blind_file):

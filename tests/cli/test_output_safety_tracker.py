@@ -2,6 +2,7 @@
 overwrites or deletes an input or a file or folder it did not write; unwritable outputs, NaN / infinite and
 out-of-range options exit 2 before any work; a successful run logs its summary at INFO."""
 
+import os
 from pathlib import Path
 import shutil
 
@@ -439,6 +440,22 @@ def test_output_names_the_system_cannot_create_exit_2(here, name, message):
     res = _run("track", here / "m.npz", "--model", here / "model.yaml", "-o", target)
     assert res.exit_code == 2 and message in res.stderr and "internal error" not in res.output, res.output
     assert not (here / "new").exists()
+
+
+def test_names_of_up_to_255_bytes_are_written_and_rewritten(here):
+    """Output names of 241-255 bytes were refused ('File name too long'): the temporary name beside them was
+    longer. A 255-byte file name (multi-byte characters included) and folder name: written, then replaced by a
+    rerun (its hidden names too), leaving nothing else behind."""
+    files = [here / ("é" * 125 + "a.npz"), here / ("t" * 251 + ".npz")]
+    folder = here / ("r" * 255)
+    assert [len(os.fsencode(p.name)) for p in files + [folder]] == [255, 255, 255]
+    before = set(os.listdir(here))
+    for seed in ("1", "2"):
+        _ok("model", "simulate", here / "model.yaml", "--duration", "0.2", "--seed", seed, "-o", files[0],
+            "--truth", files[1])
+        _ok("report", files[0].with_name("kf.npz"), "-o", folder, "--resamples", "0")
+    assert set(os.listdir(here)) - before == {p.name for p in files + [folder]}
+    assert (folder / "metrics.json").is_file()
 
 
 def test_an_output_of_another_kind_is_not_replaced(here, tmp_path):

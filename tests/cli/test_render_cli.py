@@ -84,6 +84,14 @@ def test_render_sequence(runner, tmp_path, model_file):
                                             "point_positions", "fiducial_positions", "instrument_tip",
                                             "instrument_present", "instrument_mask")]
     assert len(per_frame) == 10 and {arrays[k].shape[0] for k in per_frame} == {4}  # the rendered frames only
+    assert "timestamps.csv" in json.loads((out / "heartcv-manifest.json").read_text())["files"]
+
+
+def test_render_sequence_of_more_frames_than_the_scene_holds_warns(runner, tmp_path, model_file):
+    scene = _scene(tmp_path, model_file, motion={"duration_s": 0.1})
+    res = runner.invoke(main, ["render", "sequence", scene, "-o", str(tmp_path / "s"), "--frames", "50", "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["frames"] == 4, res.output
+    assert "--frames 50: the scene holds 4 frames" in res.stderr
 
 
 def test_render_sequence_stiffness_cycle_override(runner, tmp_path, model_file):
@@ -137,6 +145,8 @@ def test_bad_scene_field_exits_2_naming_it(runner, tmp_path, model_file, patch, 
 @pytest.mark.parametrize("cmd, patch, message", [
     ("sequence", {"phantom": {"apex_m": 0.001}}, "phantom.apex_m: the end must lie beyond the patch"),
     ("calibration", {"calibration": {"views": 1, "offset_m": 1.0}}, "calibration: no pose found for view 0"),
+    ("calibration", {"calibration": {"views": 1, "min_corners": 5000}},
+     "calibration.min_corners: 5000: the target has"),
 ])
 def test_scene_the_core_refuses_exits_2_naming_file_and_field(runner, tmp_path, model_file, cmd, patch, message):
     """A phantom that cannot be built, board poses no two cameras see: the core's InputError, with the scene file."""
@@ -154,6 +164,13 @@ def test_missing_model_or_target_exits_2(runner, tmp_path, model_file):
     scene = _scene(tmp_path, model_file, calibration={"target": "missing_target.yaml"})
     result = runner.invoke(main, ["render", "calibration", scene, "-o", str(tmp_path / "out")])
     assert result.exit_code == 2 and "calibration.target" in result.stderr
+    # the file only the other kind of render uses is checked too (each kind ignored it: exit 0)
+    result = runner.invoke(main, ["render", "sequence", scene, "-o", str(tmp_path / "out"), "--frames", "1"])
+    assert result.exit_code == 2 and f"{scene}: calibration.target:" in result.stderr, result.output
+    scene = _scene(tmp_path, tmp_path / "nope.yaml")
+    result = runner.invoke(main, ["render", "calibration", scene, "-o", str(tmp_path / "out"), "--views", "1"])
+    assert result.exit_code == 2 and f"{scene}: motion.model:" in result.stderr, result.output
+    assert not (tmp_path / "out").exists()
 
 
 def _listing(folder):

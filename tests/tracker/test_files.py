@@ -116,6 +116,18 @@ def test_atomic_folder_replaces_only_its_own_folder(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "report"]  # no temporary folder left
 
 
+def test_an_output_folder_that_is_a_link_is_named_as_one(tmp_path):
+    """A link to a folder the stage wrote: refused as a link (it said 'not a folder'), link and folder kept; the
+    folder it points to may be given instead."""
+    with F.atomic_folder(tmp_path / "rep", "heartcv report") as tmp:
+        (tmp / "a").write_text("1")
+    (tmp_path / "lnk").symlink_to(tmp_path / "rep")
+    with pytest.raises(InputError, match=r"lnk: -o/--output: is a symbolic link \(to .*rep\); not replaced"):
+        F.check_output_folder(tmp_path / "lnk", "heartcv report")
+    assert (tmp_path / "lnk").is_symlink() and (tmp_path / "lnk" / "a").read_text() == "1"
+    F.check_output_folder(tmp_path / "rep", "heartcv report")
+
+
 def test_atomic_folder_failure_keeps_the_previous_folder(tmp_path):
     out = tmp_path / "study"
     with F.atomic_folder(out, "heartcv simulate") as tmp:

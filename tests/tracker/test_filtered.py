@@ -167,9 +167,23 @@ def test_estimate_file_with_bad_times_or_negative_counts_is_refused(tmp_path, kf
         read_estimates(tmp_path / "bad_software.npz")
     assert exc.value.field == "meta.software"
     for key, edit in (("times", lambda a: a[::-1].copy()), ("nis_dof", lambda a: a - 10 ** 6),
-                      ("truncation_events", lambda a: a - 1)):
+                      ("truncation_events", lambda a: a - 1), ("theta_std", lambda a: -a - 1),
+                      ("step_time", lambda a: a - 10.0), ("nis", lambda a: np.where(np.isnan(a), a, -1.0)),
+                      ("state_var", lambda a: -a - 1)):
         bad = dict(arrays, **{key: edit(arrays[key])})
         np.savez(tmp_path / f"bad_{key}.npz", **bad)
         with pytest.raises(InputError) as exc:
             read_estimates(tmp_path / f"bad_{key}.npz")
         assert exc.value.field == key and str(tmp_path / f"bad_{key}.npz") in str(exc.value)
+    # meta a person edited: a noise level that is not a length, held-out ids the file does not hold
+    ids = arrays["point_ids"].tolist()
+    for field, value in (("measurement_noise_m", "x"), ("measurement_noise_m", -1.0), ("measurement_noise_m", 1e300),
+                         ("heldout_points", [max(ids) + 1])):
+        np.savez(tmp_path / "bad_meta.npz", **dict(arrays, meta_json=np.frombuffer(
+            json.dumps(dict(meta, **{field: value})).encode(), np.uint8)))
+        with pytest.raises(InputError) as exc:
+            read_estimates(tmp_path / "bad_meta.npz")
+        assert exc.value.field == f"meta.{field}", (field, value)
+    np.savez(tmp_path / "ok_meta.npz", **dict(arrays, meta_json=np.frombuffer(json.dumps(dict(
+        meta, measurement_noise_m=2e-4, heldout_points=ids[:2])).encode(), np.uint8)))
+    assert read_estimates(tmp_path / "ok_meta.npz").meta["measurement_noise_m"] == 2e-4
