@@ -103,7 +103,7 @@ def import_(files, fmt, units, names, image_sizes, output, as_json):
     and the field.
     """
     from heartcv.io import write_rig
-    from heartcv.rig_formats import finish_import, plan_import, read_foreign
+    from heartcv.rig_formats import finish_import, plan_import, read_foreign, side_warnings
 
     out = _yaml_output(output)
     fmt, sources = plan_import(files, fmt)
@@ -117,8 +117,11 @@ def import_(files, fmt, units, names, image_sizes, output, as_json):
         log.info("%s: %s: re-orthonormalised (max |R^T R - I| = %.2g; correction %.3g deg)", c["file"], c["field"],
                  c["deviation"], c["angle_deg"])
     result = finish_import(imported, units, names)
+    sides = side_warnings(result)
+    for msg in sides:
+        log.warning("%s", msg)
     write_rig(out, result)
-    _summarise(result, output, as_json, warnings=list(imported.warnings))
+    _summarise(result, output, as_json, warnings=list(imported.warnings) + sides)
 
 
 @rig.command("rectified")

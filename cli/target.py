@@ -62,6 +62,7 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"-o/--output: a .yaml file expected, got {output}")
     png, pdf = out.with_suffix(".png"), out.with_suffix(".pdf")
+    _refuse_sibling_target(out, png, pdf)
     guard_outputs({}, {}, files=[("-o/--output", out, ("heartcv.target",)), ("-o/--output (PNG)", png, ("png",)),
                                  ("-o/--output (PDF)", pdf, ("pdf",))])
     grid = _grid(kind, squares, inner_corners, marker_mm, legacy or inverted)
@@ -93,7 +94,29 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
                  summary["dpi"], summary["square_px"], spec.square_m * 1e3)
 
 
+def _refuse_sibling_target(out: Path, png: Path, pdf: Path) -> None:
+    """Exit 2 when another target file of the same stem (``a.yml`` beside ``a.yaml``) owns the PNG and PDF this
+    run would write: replacing them would leave that target describing one board and its printable files another
+    (a person printing ``a.pdf`` for ``a.yaml`` would get the wrong board)."""
+    import os
+
+    from heartcv.tracker.files import heartcv_format
+
+    try:
+        siblings = [p for p in out.parent.iterdir() if p.stem == out.stem and p.suffix.lower() in (".yaml", ".yml")]
+    except OSError:
+        return
+    for other in siblings:
+        if other.name == out.name or (out.exists() and os.path.samefile(other, out)):
+            continue
+        if heartcv_format(other) == "heartcv.target" and (png.exists() or pdf.exists()):
+            raise BadInput(f"-o/--output: {out}: its {png.name} and {pdf.name} belong to the target {other}, which "
+                           "would then describe another board than its printable files; give this target another "
+                           "name, or remove that target first")
+
+
 def _grid(kind, squares, inner_corners, marker_mm, charuco_flag):
+
     """The board's grid from the options of its type; exit 2 for a missing or conflicting option."""
     if kind == "charuco":
         if inner_corners is not None:

@@ -34,7 +34,7 @@ from .tracker.files import LIMITS, InputError, file_hash, get_matrix, parse_yaml
 __all__ = [
     "FORMATS", "UNITS", "MAX_SPAN_M", "ORTHO_TOL", "COLMAP_MODELS", "ImportedRig", "detect_format", "plan_import",
     "read_foreign", "finish_import", "colmap_to_opencv", "orthonormalise", "rig_span", "units_message",
-    "convert_units", "rename_cameras", "rectified_rig",
+    "convert_units", "rename_cameras", "rectified_rig", "side_warnings",
 ]
 
 FORMATS = ("opencv", "kalibr", "colmap", "caliscope", "text")
@@ -343,8 +343,9 @@ def rig_span(rig: Rig) -> tuple[float, str | None]:
 def units_message(span: float, pair: str | None = None) -> str:
     """The refusal of a rig that spans more than :data:`MAX_SPAN_M` without --units."""
     where = f" ({pair})" if pair else ""
-    return (f"baseline {span:.3g} m{where}: translations look like millimetres; pass --units mm (or --units m if "
-            f"the rig really spans {span:.3g} m)")
+    metres = f" (or --units m if the rig really spans {span:.3g} m)" if span <= 1000 else ""
+    return (f"baseline {span:.3g} m{where}: translations look like millimetres; pass --units mm{metres}. A file of "
+            "OpenCV's stereo_calib.cpp holds T in board squares: multiply it by the square size first")
 
 
 def convert_units(rig: Rig, units: str | None, path=None, field: str | None = None) -> tuple[Rig, dict]:
@@ -437,7 +438,37 @@ def finish_import(imp: ImportedRig, units: str | None = None, names=None, produc
         rig_from_dict(rig_to_dict(rig))
     except InputError as exc:
         raise exc.in_file(imp.files[0]) from None
+    for c in rig.cameras:
+        cx, cy = float(c.K[0, 2]), float(c.K[1, 2])
+        if not (-0.5 <= cx <= c.width - 0.5 and -0.5 <= cy <= c.height - 0.5):
+            raise InputError(imp.files[0], f"camera {c.name}: principal point ({cx:g}, {cy:g}) lies outside its "
+                                           f"{c.width}x{c.height} image (-0.5 .. W-0.5, -0.5 .. H-0.5): is the image "
+                                           "size right (--image-size), or the matrix another camera's?", "K")
     return rig
+
+
+def side_warnings(rig: Rig) -> list[str]:
+    """Warnings for camera names that contradict the geometry: a camera named ``right`` (any name holding
+    ``right``) whose centre lies to the left of the one named ``left`` in that camera's frame, as when poses of a
+    ``l2r`` file are read as ``r2l`` or the files were given in the other order. Only mostly horizontal baselines
+    (the x offset at least half the baseline) are judged."""
+    def side(name, word):
+        return word in name.lower()
+
+    out = []
+    lefts = [c for c in rig.cameras if side(c.name, "left") and not side(c.name, "right")]
+    rights = [c for c in rig.cameras if side(c.name, "right") and not side(c.name, "left")]
+    for a in lefts:
+        for b in rights:
+            T = a.cam_from_rig @ np.linalg.inv(b.cam_from_rig)      # b's frame into a's
+            p = T[:3, 3]                                             # b's centre in a's frame
+            base = float(np.linalg.norm(p))
+            if base > 0 and p[0] < -0.5 * base:
+                out.append(f"camera {b.name!r} lies {-1e3 * p[0]:.3g} mm to the left of camera {a.name!r} (in "
+                           f"{a.name}'s frame): are the poses inverted (a left-to-right transform read as "
+                           "right-to-left), or the cameras' files given in the other order? heartcv measure's rig "
+                           "check would show it as an epipolar error")
+    return out
 
 
 # =====================================================================================================================
@@ -851,6 +882,8 @@ def _colmap_rigs(path) -> list:
                     sensors.append((typ, sid, *_colmap_pose(q, t, path, f"{where} sensor {typ} {sid}")))
                 else:
                     sensors.append((typ, sid, None, None))
+        except InputError:      # (a ValueError too: the pose's own reason, not the layout's)
+            raise
         except (ValueError, IndexError):
             raise InputError(path, "RIG_ID NUM_SENSORS REF_SENSOR_TYPE REF_SENSOR_ID then per sensor SENSOR_TYPE "
                                    "SENSOR_ID HAS_POSE [QW QX QY QZ TX TY TZ] expected", where) from None

@@ -127,3 +127,17 @@ def test_shipped_default_target_is_what_the_command_writes(runner, tmp_path):
     assert DEFAULT.with_suffix(".pdf").is_file()
     # sized for the rig's field of view (about 17 cm across): the board is 13.2 x 9.6 cm
     assert TargetSpec.from_dict(yaml.safe_load(DEFAULT.read_text())).board_size_m == pytest.approx((0.132, 0.096))
+
+
+def test_a_target_of_the_same_stem_keeps_its_printable_files(runner, tmp_path):
+    """a.yml beside a.yaml would write a.png/a.pdf, which a.yaml names: refused (exit 2) and every byte kept; the
+    rerun of a.yaml itself, and a target of another stem, are written."""
+    base = ["target", "--type", "charuco", "--square-mm", "12", "--marker-mm", "9"]
+    assert runner.invoke(main, base + ["--squares", "11x8", "-o", str(tmp_path / "a.yaml")]).exit_code == 0
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    res = runner.invoke(main, base + ["--squares", "5x7", "-o", str(tmp_path / "a.yml")])
+    assert res.exit_code == 2 and "a.png and a.pdf belong to the target" in res.stderr, res.output
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert runner.invoke(main, base + ["--squares", "5x7", "-o", str(tmp_path / "a.yaml")]).exit_code == 0
+    assert read_target(tmp_path / "a.yaml").squares == (5, 7)
+    assert runner.invoke(main, base + ["--squares", "5x7", "-o", str(tmp_path / "b.yml")]).exit_code == 0

@@ -25,6 +25,7 @@ from heartcv.rig_formats import (
     read_foreign,
     rectified_rig,
     rig_span,
+    side_warnings,
     units_message,
 )
 from heartcv.tracker.files import InputError
@@ -171,6 +172,11 @@ def test_colmap_refusals(tmp_path, colmap_rig):
     with pytest.raises(InputError, match="RIG_ID NUM_SENSORS") as err:
         _import([one])
     assert err.value.field == "line 1"
+    # a quaternion of norm 2: its own reason (the layout message had hidden it)
+    (one / "rigs.txt").write_text("1 2 CAMERA 1 CAMERA 2 1 2 0 0 0 0.1 0 0\n")
+    with pytest.raises(InputError, match="a unit quaternion QW QX QY QZ expected, got norm 2") as err:
+        _import([one])
+    assert err.value.field == "line 1 sensor CAMERA 2"
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -313,6 +319,17 @@ def test_hamlyn_text_folder():
     assert rig.baselines()["left-right"] == pytest.approx(5.52e-3, abs=5e-6)
     assert rig.meta["units_conversion"]["scale_to_m"] == 1e-3
     assert rig.meta["orthonormalised"] == [corr]
+    assert side_warnings(rig) == []
+    # the right camera's files first: the l2r pose is then read as left_from_right, and 'right' lies 5.52 mm to
+    # the left of 'left' (imported without a word before 2026-11-29)
+    swapped = finish_import(read_foreign(fmt, files[2:4] + files[:2] + files[4:], [(360, 288)]), "mm")
+    assert swapped.names == ["right", "left"]
+    (msg,) = side_warnings(swapped)
+    assert msg.startswith("camera 'right' lies 5.52 mm to the left of camera 'left'")
+    # a principal point outside the image (the image size given wrong): exit-2 error naming the camera
+    with pytest.raises(InputError, match=r"camera left: principal point \(165.964, 154.498\) lies outside its "
+                                         r"160x120 image"):
+        finish_import(read_foreign(fmt, files, [(160, 120)]), "mm")
 
 
 def _write(path, text):
@@ -491,10 +508,13 @@ def test_convert_units():
     assert rig_span(rig) == (5.0, "a-b")
     with pytest.raises(InputError) as err:
         convert_units(rig, None, "p.txt", "T")
+    squares = ". A file of OpenCV's stereo_calib.cpp holds T in board squares: multiply it by the square size first"
     assert str(err.value) == ("p.txt: T: baseline 5 m (a-b): translations look like millimetres; pass --units mm "
-                              "(or --units m if the rig really spans 5 m)")
+                              "(or --units m if the rig really spans 5 m)" + squares)
     assert units_message(5.520739) == ("baseline 5.52 m: translations look like millimetres; pass --units mm (or "
-                                       "--units m if the rig really spans 5.52 m)")
+                                       "--units m if the rig really spans 5.52 m)" + squares)
+    # beyond what a rig file holds (1000 m), --units m is not offered (it would be refused)
+    assert units_message(1220.0) == "baseline 1.22e+03 m: translations look like millimetres; pass --units mm" + squares
     for units, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
         out, record = convert_units(rig, units)
         np.testing.assert_array_equal(out[1].t, np.array([-3.0, 4.0, 0.0]) * scale)
