@@ -117,9 +117,15 @@ def calibrate(ctx, folder, target_file, output, dist_size, max_view_rms, every, 
     _check_given_sizes(intrinsics_file, names, given_sizes, sizes)
     cal = _calibrate(detections, spec, sizes, names, view_names, int(dist_size), max_view_rms, min_views,
                      target_file, given=given, hold=held, times=times, folds=folds)
+    from heartcv.rig_formats import side_warnings
+
     rig = cal.rig
     rig = type(rig)(rig.cameras, dict(rig.meta, producer=PRODUCER,
-                                      inputs_hash=_inputs_hash(target_file, used_files)))
+                                      inputs_hash=_inputs_hash(target_file, used_files),
+                                      warnings=list(rig.meta["warnings"]) + [
+                                          f"{msg.split(' (in ')[0]}: are the camera folders swapped (the left "
+                                          "camera's images in the folder named right)?"
+                                          for msg in side_warnings(rig)]))
     for msg in rig.meta["warnings"]:
         log.warning("%s", msg)
     written = _write(out, rig, **exports)

@@ -316,6 +316,16 @@ def test_calibrate_pairs_views_named_per_camera(tmp_path):
     assert rig.baselines()["left-right"] == pytest.approx(4.82e-3, rel=0.05)
     assert json.loads(res.stdout)["rms_px"] < 0.6
     assert all(m["views_used"] == 9 for m in rig.meta["cameras"].values())
+    assert not any("swapped" in w for w in rig.meta["warnings"])
+    # the folders swapped (the left camera's images under right/): the camera named right lies 4.7 mm to the left
+    # of the one named left; warned (calibrated without a word before 2026-11-29)
+    (tmp_path / "swapped").mkdir()
+    (tmp_path / "swapped" / "right").symlink_to(LAPAROSCOPE / "left")
+    (tmp_path / "swapped" / "left").symlink_to(LAPAROSCOPE / "right")
+    res = _run("calibrate", tmp_path / "swapped", "--target", target, "-o", tmp_path / "sw.yaml", "--folds", "0")
+    assert res.exit_code == 0, res.output
+    assert "camera 'right' lies 4.6" in res.stderr and "are the camera folders swapped" in res.stderr, res.stderr
+    assert any("swapped" in w for w in read_rig(tmp_path / "sw.yaml").meta["warnings"])
     # a view whose number only one camera has is that camera's alone
     (tmp_path / "lap" / "left").mkdir(parents=True)
     (tmp_path / "lap" / "right").mkdir()
