@@ -278,14 +278,16 @@ def _board_extends(grid, gray) -> bool:
     return False
 
 
-MARKER_SPREAD = 0.4  # grey-level spread inside light squares (over the contrast) above which they hold markers
+MARKER_SPREAD = 0.3  # grey-level spread inside light squares (over the contrast) above which they hold markers
 
 
 def _cells_hold_markers(grid, gray) -> bool:
     """Whether the light squares inside the corner grid hold patterns (ArUco markers: a ChArUco board, which a
     chessboard target does not describe) rather than a plain colour: the median over the light squares of the
-    spread of 9 grey levels at +-0.25 squares about the centre, over the contrast, exceeds ``MARKER_SPREAD``
-    (plain chessboards, OpenCV's and the laparoscope's photographs included: below 0.1; ChArUco: about 0.9)."""
+    spread of 25 grey levels on a 5 x 5 grid within +-0.2 squares of the centre, over the contrast, exceeds
+    ``MARKER_SPREAD`` (plain chessboards, OpenCV's and the laparoscope's photographs included: below 0.04; ChArUco:
+    0.63 on OpenCV's tutorial photograph, whose markers are half the square: the 9 levels at +-0.25 squares used
+    before 2026-11-29 fell on the markers' edges there, 0.37, and the board was taken for a chessboard)."""
     sample = _GridSampler(grid, gray)
     xy = sample.inner()
     p = sample.parity(xy)
@@ -294,7 +296,8 @@ def _cells_hold_markers(grid, gray) -> bool:
     cells = xy[p == light]
     if cells.size == 0 or (p != light).sum() == 0:
         return False
-    offsets = [(a, b) for a in (-0.25, 0.0, 0.25) for b in (-0.25, 0.0, 0.25)]
+    steps = np.linspace(-0.2, 0.2, 5)      # inside a marker of half the square (OpenCV's tutorial board) too
+    offsets = [(a, b) for a in steps for b in steps]
     vals = np.stack([sample(cells + np.asarray(o))[0] for o in offsets], axis=1)
     contrast = np.percentile(vals, 95) - np.median(v[p != light])
     if contrast <= 0:

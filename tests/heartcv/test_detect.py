@@ -206,6 +206,20 @@ def test_opencv_charuco_photo():
     spec = TargetSpec("charuco", (5, 7), 0.04, 0.02, "DICT_6X6_250")
     det = detect(read_image(DATA / "opencv_charuco" / "choriginal.jpg", "color"), spec)
     np.testing.assert_array_equal(det.ids, np.arange(24))
+    # a chessboard target of its 4x6 inner corners: findChessboardCornersSB finds the grid, but its light squares
+    # hold markers (half the square: they were taken for plain squares before 2026-11-29): rejected, in the photo
+    # and in perspective views of it, while a plain chessboard photo keeps its corners
+    img = read_image(DATA / "opencv_charuco" / "choriginal.jpg")
+    chess = TargetSpec("chessboard", (4, 6), 0.04)
+    assert len(detect(img, chess)) == 0
+    import cv2
+
+    h, w = img.shape
+    for dx in (-60, 60):
+        H = cv2.getPerspectiveTransform(np.float32([[0, 0], [w, 0], [w, h], [0, h]]),
+                                        np.float32([[dx, 20], [w - 20, -dx / 2], [w, h], [0, h - 30]]))
+        assert len(detect(cv2.warpPerspective(img, H, (w, h), borderValue=255), chess)) == 0
+    assert len(detect(read_image(DATA / "opencv_stereo" / "left01.jpg"), CHESS)) == 54
 
 
 # -- small boards: the corners behind caliscope's camera distances -------------------------------------------------
