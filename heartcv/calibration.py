@@ -222,7 +222,7 @@ def target_mismatch(detections, spec) -> str | None:
                                          ("first column", 0 in cols), ("last column", nx - 1 in cols)) if not ok]
         if missing:
             return (f"no image shows a corner of the target's {' or '.join(missing)} of corners: the board in the "
-                    f"images is smaller than the target")
+                    f"images is smaller than the target, or that part of the board is out of view in every image")
     return None
 
 
