@@ -87,7 +87,9 @@ def _odd_nodes(ctx, param, value):
 @click.option("--truncation", type=click.Choice(("sequential", "tallis", "none")), default=None,
               help="Box truncation of the parameters after every prediction and update: for ge the default comes "
                    "from the model file (sequential); ukf and ekf do not truncate unless asked.")
-@click.option("--joseph", is_flag=True, help="Joseph-form covariance update.")
+@click.option("--joseph", is_flag=True, help="Joseph-form covariance update (of the Cholesky-form update; frames "
+                                            "with more measurement rows than states take the block form, which "
+                                            "needs none).")
 @click.option("--params", "params_file", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Parameters file of heartcv fit: its theta replaces the model file's parameters (kf: held at "
                    "them; ge/ukf/ekf: the prior mean, with the fit's standard deviation unless the model file's "
@@ -174,6 +176,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         raise BadInput("--parameter-overdispersion applies to the estimators of parameters (ge, ukf, ekf) only")
     if heart_rate_walk is not None and (estimator != "ge" or not sample_heart_rate):
         raise BadInput("--heart-rate-walk applies to ge sampling the heart rate only (not with --hold-heart-rate)")
+    given = _given(ctx)
+    _check_given_scope(estimator, given)
     from heartcv.tracker.files import check_output_name
 
     check_output_name(output)
@@ -208,6 +212,11 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         input_block = _input_block(m, meas, fitted, params_file, measurements)
         if input_block is not None:
             _check_rate_band(input_block, fitted, params_file)
+        for name, option in (("sample_heart_rate", "--sample-heart-rate/--hold-heart-rate"),
+                             ("rigid_dynamics", "--rigid-dynamics")):
+            if name in given and input_block is None:
+                raise BadInput(f"{option}: {params_file} holds no estimated input (estimated_input; the fit had a "
+                               "recorded pressure), so there is no heart rate to sample or rigid motion to relearn")
         if heart_rate_walk is not None and input_block is None:
             raise BadInput(f"--heart-rate-walk: {params_file} holds no estimated input (estimated_input; the fit had "
                            "a recorded pressure), so the GE samples no heart rate")
@@ -444,6 +453,29 @@ def _fitted_heart_rate(fitted) -> dict:
                    respiration_rate_std_hz=float(rstd) if isinstance(rstd, (int, float)) else None,
                    respiration_rate_source="parameters file (heartcv fit, the rigid motion's spectrum)")
     return out
+
+
+def _given(ctx) -> set:
+    """The parameters named on the command line (or in the environment), not left at their defaults."""
+    from click.core import ParameterSource
+
+    return {name for name in ctx.params
+            if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)}
+
+
+def _check_given_scope(estimator, given) -> None:
+    """Exit 2 for an option given to an estimator it does not apply to (each was accepted and ignored before
+    2026-11-29, some reported as used: ``adaptation.random_walk`` true for a KF)."""
+    joint = ("ge", "ukf", "ekf")
+    rules = (("adapt_random_walk", "--adapt-random-walk", joint, "the estimators of parameters (ge, ukf, ekf)"),
+             ("sample_heart_rate", "--sample-heart-rate/--hold-heart-rate", ("ge",), "the GE"),
+             ("references", "--references", ("kf",) + joint, "the model-based estimators (kf, ge, ukf, ekf)"),
+             ("rigid_dynamics", "--rigid-dynamics", ("kf",) + joint, "the model-based estimators (kf, ge, ukf, ekf)"),
+             ("adapt", "--adapt/--no-adapt", ("kf",) + joint, "the model-based estimators (kf, ge, ukf, ekf)"),
+             ("adapt_window", "--adapt-window", ("kf",) + joint, "the model-based estimators (kf, ge, ukf, ekf)"))
+    for name, option, applies, who in rules:
+        if name in given and estimator not in applies:
+            raise BadInput(f"{option} applies to {who} only, not to {estimator}")
 
 
 def _check_scope(estimator, nodes, truncation, joseph=False, heart_rate_hz=None) -> None:

@@ -153,3 +153,33 @@ def test_track_offsets_default_is_auto_for_the_model_and_absent_for_the_baseline
                                     "-o", str(tmp_path / "hold.npz")])
     assert res.exit_code == 0, res.output
     assert "track_offsets" not in read_estimates(str(tmp_path / "hold.npz")).meta
+
+
+@pytest.mark.parametrize("estimator, args, option", [
+    ("kf", ["--adapt-random-walk"], "--adapt-random-walk applies to the estimators of parameters"),
+    ("kf", ["--hold-heart-rate"], "--sample-heart-rate/--hold-heart-rate applies to the GE only"),
+    ("ukf", ["--sample-heart-rate"], "--sample-heart-rate/--hold-heart-rate applies to the GE only"),
+    ("hold", ["--references", "estimate"], "--references applies to the model-based estimators"),
+    ("constvel", ["--rigid-dynamics", "fit"], "--rigid-dynamics applies to the model-based estimators"),
+    ("harmonic", ["--no-adapt"], "--adapt/--no-adapt applies to the model-based estimators"),
+    ("hold", ["--adapt-window", "2"], "--adapt-window applies to the model-based estimators"),
+    ("ge", ["--hold-heart-rate"], "holds no estimated input"),         # a recorded pressure: no rate to sample
+    ("kf", ["--rigid-dynamics", "refit"], "holds no estimated input"),
+])
+def test_options_that_do_not_apply_exit_2(tmp_path, meas_file, estimator, args, option):
+    """Options accepted and ignored before (a KF's --adapt-random-walk even reported as used): exit 2 naming the
+    option, nothing written; the same options where they apply run."""
+    params = tmp_path / "p.yaml"
+    if "holds no estimated input" in option:
+        r = CliRunner().invoke(main, ["fit", meas_file, "--model", PAPER, "-o", str(params), "--frames", "20"])
+        assert r.exit_code == 0, r.output
+        args = args + ["--params", str(params)]
+    out = tmp_path / "e.npz"
+    r = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", estimator, *args,
+                                  "-o", str(out)])
+    assert r.exit_code == 2 and option in r.output.replace("\n", " "), r.output
+    assert not out.exists()
+    if option.startswith("--adapt-random-walk"):
+        r = CliRunner().invoke(main, ["track", meas_file, "--model", PAPER, "--estimator", "ekf", *args,
+                                      "--track-offsets", "none", "-o", str(out), "--json"])
+        assert r.exit_code == 0 and json.loads(r.stdout)["adaptation"]["random_walk"] is True, r.output
