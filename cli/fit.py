@@ -130,6 +130,9 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
         raise BadInput("--heart-rate-hz applies to an estimated input (--input estimate) only")
     band = BAND_HZ if heart_rate_band is None else _band(heart_rate_band, "--heart-rate-band", 0.1, 20.0)
     resp_band = None if respiration_band is None else _band(respiration_band, "--respiration-band", 0.01, 10.0)
+    if respiration == "none" and not estimate_input:
+        raise BadInput("--respiration none applies to an estimated input (--input estimate) only: with a recorded "
+                       "pressure the fit has no respiration oscillators to leave out")
     if respiration_band is not None and (not estimate_input or respiration == "none"):
         raise BadInput("--respiration-band applies to an estimated input (--input estimate) with --respiration auto")
     if heart_rate_band is not None and not estimate_input:

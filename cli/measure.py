@@ -164,8 +164,9 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
         raise BadInput("--overlay-video: only with --overlay DIR")
     if window is not None and window % 2 == 0:     # option values before anything is read
         raise BadInput(f"--window: an odd number expected, got {window}")
-    if not dense:
-        _size_factor(size_factor)
+    _size_factor(size_factor)
+    if dense:
+        _refuse_sparse_options(ctx)
     both = fields == "both"
     if field_order != "auto" and not both:
         raise BadInput("--field-order applies to --fields both only")
@@ -272,6 +273,26 @@ def measure(ctx, sequence, rig_file, output, mask_file, inputs_file, fps, packed
                            first_field, instant_names)
     _report(output, run, times, wall, names, "dense" if dense else be.name, truth, ref, as_json, overlay, sizing,
             ref_cam=rig.cameras[ref])
+
+
+SPARSE_ONLY = {"max_points": "--points", "min_distance": "--min-distance", "corner_block": "--corner-block",
+               "corner_quality": "--corner-quality", "fb_max": "--fb-max", "ncc_allowance": "--ncc-allowance",
+               "match_ncc_allowance": "--match-ncc-allowance", "min_ncc": "--min-ncc",
+               "max_depth_std": "--max-depth-std", "max_reprojection": "--max-reprojection", "min_angle": "--min-angle",
+               "max_gap": "--max-gap", "window": "--window", "no_specular": "--no-specular", "backend": "--backend",
+               "device": "--device", "highpass": "--highpass", "size_factor": "--size-factor"}
+"""The sparse mode's options (parameter name -> option), which --dense does not use (docs/cli.md §10.4)."""
+
+
+def _refuse_sparse_options(ctx) -> None:
+    """Exit 2 for a sparse-mode option given with --dense (accepted and ignored before 2026-11-29)."""
+    from click.core import ParameterSource
+
+    given = [flag for name, flag in SPARSE_ONLY.items()
+             if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)]
+    if given:
+        raise BadInput(f"--dense: {', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to the sparse mode "
+                       "only (the dense mode has its own matcher and gates; docs/cli.md §10.4)")
 
 
 def _size_factor(value) -> float | None:

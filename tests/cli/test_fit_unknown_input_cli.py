@@ -414,6 +414,11 @@ def test_rigid_ar_is_forced_refused_with_a_recorded_input_and_at_another_frame_r
                                      sim]).exit_code == 0
     res = CliRunner().invoke(main, ["fit", sim, "--model", PAPER, "-o", str(tmp_path / "q.yaml"), "--rigid-ar", "1"])
     assert res.exit_code == 2 and "--rigid-ar" in res.output
+    # --respiration none with the recorded pressure was accepted and ignored
+    res = CliRunner().invoke(main, ["fit", sim, "--model", PAPER, "-o", str(tmp_path / "q.yaml"), "--respiration",
+                                    "none"])
+    assert res.exit_code == 2 and "--respiration none applies to an estimated input" in res.output
+    assert not (tmp_path / "q.yaml").exists()
 
 
 @pytest.mark.slow

@@ -435,6 +435,16 @@ def test_size_factor_auto_reports_the_blur_and_a_given_factor_scales_the_prefilt
             p.unlink()
         _assert_failed_cleanly(_measure(case, "--size-factor", bad), "--size-factor", repr(bad))
         _assert_no_output(case)
+        # with --dense too (a bad value was not even checked there)
+        _assert_failed_cleanly(_measure(case, "--dense", "--size-factor", bad), "--size-factor", repr(bad))
+        _assert_no_output(case)
+    # the sparse mode's options given with --dense (this helper always gives --points): named (they were accepted
+    # and ignored)
+    _assert_failed_cleanly(_measure(case, "--dense", "--size-factor", "2"), "--dense: --points, --size-factor apply "
+                           "to the sparse mode only")
+    _assert_failed_cleanly(_measure(case, "--dense", "--window", "21", "--backend", "opencv"),
+                           "--dense: --points, --window, --backend apply to the sparse mode only")
+    _assert_no_output(case)
 
 
 def test_oversampled_frames_are_measured_reduced_and_reported_in_their_own_pixels(case, tmp_path):
