@@ -581,8 +581,11 @@ def _run(ctx, reader, rig, opts, roi, backend, count, sequence, rig_file, dense=
     if empty and not quiet:
         from heartcv.measure_data import frame_spans
 
-        log.warning("no point was measured in %d of %d frames (%s): blank, dark, blurred or covered views?",
-                    len(empty), count, frame_spans(empty))
+        budget = getattr(opts, "max_points", None)
+        log.warning("no point was measured in %d of %d frames (%s): blank, dark, blurred or covered views?%s",
+                    len(empty), count, frame_spans(empty),
+                    f" (or a budget of --points {budget} too small to keep one in view)"
+                    if budget is not None and budget < 20 else "")
     rejected = run.result.rejected
     if rejected:
         log.info("candidates removed per gate: %s", ", ".join(f"{g} {n}" for g, n in rejected.items()))

@@ -557,9 +557,9 @@ def _refine_2d(backend, cameras, ref, c, images, origins, uv_ref, X, normals, ra
     rows = np.arange(len(best))
 
     def parabola(f0, fm, fp):
-        den = fm - 2 * f0 + fp
-        ok = np.isfinite(fm) & np.isfinite(fp) & (den < 0)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore"):    # (-inf scores, shifts off the image: no vertex)
+            den = fm - 2 * f0 + fp
+            ok = np.isfinite(fm) & np.isfinite(fp) & np.isfinite(f0) & (den < 0)
             return np.where(ok, np.clip(0.5 * (fm - fp) / np.where(ok, den, 1.0), -0.5, 0.5), 0.0)
 
     f0 = S[rows, iy, ix]

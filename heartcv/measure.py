@@ -1212,7 +1212,8 @@ def measure_sequence(frames, cameras, options: MeasureOptions = MeasureOptions()
 
 
 #: The option of ``heartcv measure`` that loosens each gate (for the failure messages).
-GATE_OPTIONS = {"match": "--match-ncc-allowance or --min-ncc", "reprojection": "--max-reprojection",
+GATE_OPTIONS = {"match": "--match-ncc-allowance or --min-ncc; a --window near the image's size leaves no room",
+                "reprojection": "--max-reprojection or --min-angle",
                 "depth_uncertainty": "--max-depth-std", "photometric": "--ncc-allowance or --min-ncc",
                 "forward_backward": "--fb-max", "lost": "--window", "specular": "--no-specular"}
 
@@ -1221,7 +1222,8 @@ def emptied_by(rejected) -> str:
     """Which gates removed the candidates (largest first), with the option that loosens each."""
     hits = sorted(((n, g) for g, n in rejected.items() if n), reverse=True)
     if not hits:
-        return "no corner was detected in the region of interest (check the region and --corner-quality)"
+        return ("no corner was detected in the region of interest (check the region, --corner-quality, and "
+                "--min-distance and --corner-block, which --size-factor multiplies)")
     parts = [f"{g} gate {n}" + (f" ({GATE_OPTIONS[g]})" if g in GATE_OPTIONS else "") for n, g in hits]
     return "candidates removed by the " + ", ".join(parts)
 

@@ -89,7 +89,9 @@ class FitProblem:
             raise ValueError(f"frames: at least 2 frames are needed for a fit, got {frames}")
         K = meas.n_frames if frames is None else min(int(frames), meas.n_frames)
         if K < 2:
-            raise InputError(None, f"a fit needs at least 2 frames, the file has {meas.n_frames}", "times")
+            raise InputError(None, f"at least 2 frames are needed (heartcv fit, and heartcv track --params, whose "
+                                   f"measured points' undeformed references are fitted), the file has "
+                                   f"{meas.n_frames}", "times")
         pts = points or locate_points(model, meas)
         self.model = model
         self.dt = frame_interval(model, meas)
