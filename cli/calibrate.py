@@ -413,13 +413,13 @@ def _detect_view(view, spec):
 
 def _detect_packed(cameras, layout, spec, every, jobs, verbosity, infos=None):
     """:func:`_detect_all` of one packed source whose frames hold every camera's view."""
-    from heartcv.io import natural_key, unpack_views
+    from heartcv.io import sort_names, unpack_views
     from heartcv.video import iter_frames
 
     n, (_, kind, paths) = len(cameras), cameras[0]
     results, files = {}, {}
     if kind == "images":
-        ordered = sorted(paths, key=lambda p: natural_key(p.name))[::every]
+        ordered = sort_names(paths, stem=lambda p: p.stem)[::every]
         names = [p.stem for p in ordered]
         with ThreadPoolExecutor(jobs) as pool:
             done = pool.map(_read_and_detect_packed, ordered, [layout] * len(ordered), [n] * len(ordered),
