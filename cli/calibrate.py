@@ -586,7 +586,7 @@ def _write(out: Path, rig, colmap: Path, kalibr: Path) -> dict:
     new rig, so it never contradicts it."""
     from heartcv.calibration_rig import kalibr_limitation
     from heartcv.io import write_colmap, write_kalibr, write_rig
-    from heartcv.tracker.files import atomic_folder, is_heartcv_file
+    from heartcv.tracker.files import atomic_folder, is_heartcv_file, remove_output
 
     with atomic_folder(colmap, PRODUCER, {"rig_file": out.name}) as tmp:
         write_colmap(tmp, rig)
@@ -599,7 +599,7 @@ def _write(out: Path, rig, colmap: Path, kalibr: Path) -> dict:
         log.warning("no Kalibr camchain written: %s", why)
         exports["kalibr_skipped"] = why
         if kalibr.is_file() and is_heartcv_file(kalibr):
-            kalibr.unlink()
+            remove_output(kalibr)       # with the renames: an interrupted run keeps it
     write_rig(out, rig)
     return exports
 

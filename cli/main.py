@@ -18,7 +18,7 @@ import traceback
 
 import click
 
-from heartcv.tracker.files import ConcurrentWrite, InputError, output_group
+from heartcv.tracker.files import ConcurrentWrite, InputError, output_group, outputs_committed
 
 log = logging.getLogger("heartcv")
 
@@ -54,9 +54,9 @@ class LazyGroup(click.Group):
         except InputError as exc:
             raise _InputRefused(str(exc)) from None
         except Terminated:
-            raise Interrupted("terminated (SIGTERM)", 143) from None
+            raise Interrupted("terminated (SIGTERM)", 143, outputs_committed()) from None
         except KeyboardInterrupt:
-            raise Interrupted("interrupted (Ctrl-C)", 130) from None
+            raise Interrupted("interrupted (Ctrl-C)", 130, outputs_committed()) from None
         except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort, SystemExit):
             raise
         except ConcurrentWrite as exc:      # two runs on one output folder: a failed stage, not a bug
@@ -82,9 +82,12 @@ class Interrupted(click.ClickException):
     """Ctrl-C (exit 130) or SIGTERM (exit 143): one line, no traceback; the outputs' temporary files were removed
     and every earlier output is as it was."""
 
-    def __init__(self, what: str, code: int):
-        super().__init__(f"{what}: stopped; nothing was replaced (earlier outputs are as they were, temporary files "
-                         "removed)")
+    def __init__(self, what: str, code: int, written: bool = False):
+        if written:     # the signal came after the outputs were put in place (held while they were)
+            super().__init__(f"{what} after the outputs were put in place: they are this run's, complete")
+        else:
+            super().__init__(f"{what}: stopped; nothing was replaced (earlier outputs are as they were, temporary "
+                             "files removed)")
         self.exit_code = code
 
     def show(self, file=None):

@@ -44,7 +44,7 @@ import numpy as np
 
 __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "output_group", "written_at_once",
-    "MANIFEST_NAME", "read_manifest",
+    "remove_output", "outputs_committed", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "heartcv_format",
     "check_output_name", "file_kind", "NAME_MAX", "ConcurrentWrite",
     "HAND_WRITTEN_FORMATS", "read_text", "read_yaml",
@@ -197,6 +197,83 @@ def _pending_source(path):
     return path
 
 
+class _PendingRemoval:
+    """An output of an earlier run that this run removes (a Kalibr camchain the new rig cannot be written as),
+    removed with the renames (:func:`remove_output`)."""
+
+    def __init__(self, path: Path):
+        self.path, self.backup = path, None
+
+    def commit(self) -> None:
+        if os.path.lexists(self.path):
+            backup = self.path.parent / (_hidden(self.path.name, ".old-", 12) + secrets.token_hex(6))
+            os.replace(self.path, backup)
+            self.backup = backup
+
+    def rollback(self) -> None:
+        if self.backup is not None:
+            os.replace(self.backup, self.path)
+            self.backup = None
+
+    def finish(self) -> None:
+        if self.backup is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self.backup)
+
+    def discard(self) -> None:
+        pass
+
+
+def remove_output(path) -> None:
+    """Remove an earlier run's output that this run does not write again; inside an :func:`output_group`, with
+    the renames (an interrupted or failed stage keeps it, as it keeps every other earlier output)."""
+    item = _PendingRemoval(Path(path))
+    group = _GROUP.get()
+    if group is not None:
+        group.append(item)
+        return
+    with _signals_held():
+        item.commit()
+        item.finish()
+
+
+_COMMITTED: contextvars.ContextVar = contextvars.ContextVar("heartcv_outputs_committed", default=False)
+
+
+def outputs_committed() -> bool:
+    """Whether the last :func:`output_group` of this context put its outputs in place (for the message of a stage
+    interrupted after that: its outputs are complete, not the earlier ones)."""
+    return _COMMITTED.get()
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """SIGINT and SIGTERM held back while the block runs (the renames of a stage's outputs and their undoing),
+    then delivered to the handlers they had: a Ctrl-C never leaves a replaced folder hidden under its ``.old-``
+    name, or one output new and another old. The handlers are swapped (a signal mask would hold them in this
+    thread only, and the interpreter runs its handlers for a signal any thread receives); main thread only."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list = []
+    before = {sig: signal.signal(sig, lambda signum, frame: caught.append(signum))
+              for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        for sig in dict.fromkeys(caught):       # each once, in the order they came
+            handler = before[sig]
+            if callable(handler):
+                handler(sig, None)              # Python's KeyboardInterrupt, the command line's Terminated
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), sig)
+
+
 @contextlib.contextmanager
 def output_group():
     """Put every output that :func:`atomic_path` and :func:`atomic_folder` write inside the block in place together,
@@ -215,28 +292,32 @@ def output_group():
         return
     pending: list = []
     token = _GROUP.set(pending)
+    _COMMITTED.set(False)
     try:
         yield
     except BaseException:
         _GROUP.reset(token)
-        for item in pending:
-            item.discard()
+        with _signals_held():
+            for item in pending:
+                item.discard()
         raise
     _GROUP.reset(token)
-    done = []
-    try:
-        for item in pending:
-            item.commit()
-            done.append(item)
-    except BaseException:
-        for item in reversed(done):
-            with contextlib.suppress(OSError):
-                item.rollback()
-        for item in pending[len(done):]:
-            item.discard()
-        raise
-    for item in done:
-        item.finish()
+    with _signals_held():       # a Ctrl-C now waits until every output is in place, or every one undone
+        done = []
+        try:
+            for item in pending:      # (signals held: nothing lands between a rename and its record)
+                item.commit()
+                done.append(item)
+        except BaseException:
+            for item in reversed(done):
+                with contextlib.suppress(OSError):
+                    item.rollback()
+            for item in pending[len(done):]:
+                item.discard()
+            raise
+        for item in done:
+            item.finish()
+        _COMMITTED.set(True)
 
 
 @contextlib.contextmanager
@@ -283,11 +364,12 @@ def atomic_path(path, suffix=None):
         group.append(item)
         return
     item.keep_backup = False
-    try:
-        item.commit()
-    except BaseException:
-        item.discard()
-        raise
+    with _signals_held():
+        try:
+            item.commit()
+        except BaseException:
+            item.discard()
+            raise
 
 
 MANIFEST_NAME = "heartcv-manifest.json"
@@ -357,12 +439,13 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
     if group is not None:
         group.append(item)
         return
-    try:
-        item.commit()
-    except BaseException:
-        item.discard()
-        raise
-    item.finish()
+    with _signals_held():
+        try:
+            item.commit()
+        except BaseException:
+            item.discard()
+            raise
+        item.finish()
 
 
 class _PendingFolder:

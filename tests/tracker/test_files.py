@@ -226,6 +226,87 @@ def test_output_group_undoes_the_renames_done_when_a_later_one_fails(tmp_path, m
     assert _listing(tmp_path) == before
 
 
+class _Term(Exception):
+    pass
+
+
+@pytest.mark.parametrize("nth", [1, 2, 3])
+def test_a_signal_during_the_renames_waits_until_they_are_done(tmp_path, monkeypatch, nth):
+    """SIGTERM arriving just as the nth rename of the final commit returns (where the fault injection of the
+    command line left a report folder hidden under its .old- name, or one output new and another old): held
+    until every output is in place, then raised; all outputs new, nothing hidden left, outputs_committed() true.
+    (The handler raises _Term here; the command line's raises Terminated.)"""
+    import signal
+
+    _previous_run(tmp_path)
+    calls = {"n": 0}
+    real = os.replace
+
+    def replace(src, dst):
+        real(src, dst)
+        calls["n"] += 1
+        if calls["n"] == nth:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    def handler(signum, frame):
+        raise _Term()
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        monkeypatch.setattr(F.os, "replace", replace)
+        with pytest.raises(_Term):
+            with F.output_group():
+                with F.atomic_path(tmp_path / "m.csv") as tmp:
+                    tmp.write_text("heartcv 2\n")
+                with F.atomic_folder(tmp_path / "ov", "heartcv measure --overlay") as tmp:
+                    (tmp / "f.png").write_text("new")
+                F.remove_output(tmp_path / "gone.yaml")
+        assert F.outputs_committed()
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert (tmp_path / "m.csv").read_text() == "heartcv 2\n" and (tmp_path / "ov" / "f.png").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv", "ov"]
+
+
+def test_sigterm_during_a_stages_renames_exits_143_with_its_outputs_complete(tmp_path, monkeypatch):
+    """heartcv target over an earlier target, SIGTERM as its first output is renamed (the fault injection's
+    yaml-new, png-and-pdf-old case): exit 143 saying the outputs are this run's and complete; all three new."""
+    import signal
+
+    args = ["target", "--type", "chessboard", "--square-mm", "25", "-o", str(tmp_path / "t.yaml")]
+    assert CliRunner().invoke(main, args + ["--inner-corners", "8x5"]).exit_code == 0
+    old = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real, calls = os.replace, []
+
+    def replace(src, dst):
+        real(src, dst)
+        calls.append(dst)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(F.os, "replace", replace)
+    res = CliRunner().invoke(main, args + ["--inner-corners", "9x6"])
+    assert res.exit_code == 143 and "terminated (SIGTERM) after the outputs were put in place" in res.output
+    new = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(new) == ["t.pdf", "t.png", "t.yaml"] and all(new[k] != old[k] for k in new) and len(calls) == 3
+
+
+def test_an_output_removed_by_a_stage_is_kept_when_the_stage_fails(tmp_path):
+    """calibrate removes the earlier Kalibr camchain when the new rig cannot be written as one: it deleted it at
+    once, and an interrupted run lost it. Now removed with the renames."""
+    cam = tmp_path / "rig_camchain.yaml"
+    cam.write_text("# heartcv camchain\n")
+    with pytest.raises(KeyboardInterrupt):
+        with F.output_group():
+            F.remove_output(cam)
+            assert cam.read_text() == "# heartcv camchain\n"
+            raise KeyboardInterrupt
+    assert cam.read_text() == "# heartcv camchain\n" and sorted(p.name for p in tmp_path.iterdir()) == [cam.name]
+    with F.output_group():
+        F.remove_output(cam)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_failing_stage_on_the_command_line_leaves_its_earlier_outputs(tmp_path, monkeypatch):
     """End to end through the command line: model simulate writes its measurement file, then fails writing the
     truth file; the previous run's measurement file is unchanged and no new file appears."""
