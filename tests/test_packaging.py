@@ -91,4 +91,4 @@ def test_the_wheel_installs_heartcv_tracker_and_heartcv_cli_and_no_top_level_nam
     assert "heartcv/tracker/kalman.py" in names and "heartcv/cli/main.py" in names
     assert "heartcv/tracker/files.py" in names and "heartcv/render/scene.py" in names
     entry = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "heartcv = heartcv.cli.main:main" in zipfile.ZipFile(wheel).read(entry).decode()
+    assert "heartcv = heartcv.cli.entry:run" in zipfile.ZipFile(wheel).read(entry).decode()

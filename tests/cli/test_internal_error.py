@@ -90,3 +90,28 @@ def test_a_full_disk_is_a_failed_stage_not_a_bug(tmp_path, monkeypatch, code, sy
     else:
         assert last.startswith("Error: internal error: OSError at ") and "this is a bug in heartcv" in last
     assert "Traceback" not in res.stderr and os.listdir(tmp_path) == []
+
+
+def test_ctrl_c_while_the_console_script_starts_is_one_line_and_exit_130():
+    """The console script (heartcv.cli.entry:run) with a KeyboardInterrupt raised while it imports the command
+    line, as a Ctrl-C in the first tenths of a second: one line on stderr, exit 130, no traceback (it was Python's
+    traceback and exit -2). The same script runs a command otherwise."""
+    import subprocess
+    import sys
+
+    code = ("import builtins, sys\n"
+            "real = builtins.__import__\n"
+            "def imp(name, *a, **k):\n"
+            "    if name == 'heartcv.cli.main':\n"
+            "        raise KeyboardInterrupt\n"
+            "    return real(name, *a, **k)\n"
+            "builtins.__import__ = imp\n"
+            "from heartcv.cli.entry import run\n"
+            "sys.argv = ['heartcv', '--version']\n"
+            "run()\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 130 and "Traceback" not in res.stderr, res.stderr
+    assert res.stderr == "Error: interrupted (Ctrl-C) while starting: nothing was done\n"
+    ok = subprocess.run([sys.executable, "-c", "import sys; from heartcv.cli.entry import run; "
+                         "sys.argv = ['heartcv', '--version']; run()"], capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0 and "heartcv, version" in ok.stdout
