@@ -158,3 +158,17 @@ def test_demo_reruns_what_a_changed_setting_affects(make_stub):
     assert _stages(calls) == ["fit", "measure", "render", "report", "track", "track"], calls
     assert _arg(calls, "render", "--frames") == "120"
     assert run("SEED=2", "FRAMES=120", goal="demo") == []
+
+
+def test_sample_sequences_makefile_runs_with_the_repositorys_environment(tmp_path):
+    """`make -C sample_sequences phantom95` as the README writes it (no PY): the recipes run the repository's
+    .venv python when there is one (they ran the system python3, which has no heartcv: exit 2 at the first step);
+    a given PY still wins (dry runs)."""
+    args = ["make", "-n", "-B", "-C", str(ROOT / "sample_sequences"), "phantom95", f"WORK={tmp_path / 'w'}"]
+    res = subprocess.run(args, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
+    venv = ROOT / ".venv" / "bin" / "python"
+    want = f"{venv} -m heartcv.cli.main render sequence" if venv.exists() else "python3 -m heartcv.cli.main render"
+    assert want in res.stdout, res.stdout[:2000]
+    res = subprocess.run(args + ["PY=/opt/other/python"], capture_output=True, text=True)
+    assert "/opt/other/python -m heartcv.cli.main render sequence" in res.stdout
