@@ -227,13 +227,24 @@ class _PendingRemoval:
 def remove_output(path) -> None:
     """Remove an earlier run's output that this run does not write again; inside an :func:`output_group`, with
     the renames (an interrupted or failed stage keeps it, as it keeps every other earlier output)."""
-    item = _PendingRemoval(Path(path))
+    _place(_PendingRemoval(Path(path)))
+
+
+def _place(item) -> None:
+    """Put a finished output (or a removal) in place: inside an :func:`output_group` with the group's renames,
+    else now, with signals held (a replaced file then keeps no backup: there is nothing to undo it with)."""
     group = _GROUP.get()
     if group is not None:
         group.append(item)
         return
+    if isinstance(item, _PendingFile):
+        item.keep_backup = False
     with _signals_held():
-        item.commit()
+        try:
+            item.commit()
+        except BaseException:
+            item.discard()
+            raise
         item.finish()
 
 
@@ -358,18 +369,7 @@ def atomic_path(path, suffix=None):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    item = _PendingFile(Path(tmp), path)
-    group = _GROUP.get()
-    if group is not None:
-        group.append(item)
-        return
-    item.keep_backup = False
-    with _signals_held():
-        try:
-            item.commit()
-        except BaseException:
-            item.discard()
-            raise
+    _place(_PendingFile(Path(tmp), path))
 
 
 MANIFEST_NAME = "heartcv-manifest.json"
@@ -434,18 +434,7 @@ def atomic_folder(path, producer: str, manifest: dict | None = None):
         raise
     finally:
         _GROUP.reset(token)
-    item = _PendingFolder(tmp, path, producer)
-    group = _GROUP.get()
-    if group is not None:
-        group.append(item)
-        return
-    with _signals_held():
-        try:
-            item.commit()
-        except BaseException:
-            item.discard()
-            raise
-        item.finish()
+    _place(_PendingFolder(tmp, path, producer))
 
 
 class _PendingFolder:
