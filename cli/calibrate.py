@@ -15,7 +15,18 @@ from pathlib import Path
 
 import click
 
-from .options import MAX_COUNT, BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, progress
+from .options import (
+    MAX_COUNT,
+    BadInput,
+    Float,
+    Int,
+    StageFailed,
+    announce,
+    emit_json,
+    guard_outputs,
+    json_opt,
+    progress,
+)
 
 log = logging.getLogger(__name__)
 
@@ -623,4 +634,4 @@ def _summarise(rig, output, exports, as_json):
         emit_json(summary)
     else:
         base = ", ".join(f"{k} {v * 1e3:.2f} mm" for k, v in meta["baselines_m"].items())
-        log.info("wrote %s: %d cameras, RMS %.3f px, baselines %s", output, len(cams), meta["rms_px"], base)
+        announce(log, "wrote %s: %d cameras, RMS %.3f px, baselines %s", output, len(cams), meta["rms_px"], base)

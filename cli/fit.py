@@ -16,6 +16,7 @@ from .options import (
     Float,
     Int,
     StageFailed,
+    announce,
     emit_json,
     guard_outputs,
     json_opt,
@@ -182,7 +183,7 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
     if as_json:
         emit_json(summary)
     else:
-        log.info("wrote %s: %s (reduced chi-square %.3g, %d frames, %d points)", output,
+        announce(log, "wrote %s: %s (reduced chi-square %.3g, %d frames, %d points)", output,
                  ", ".join(f"{n} = {summary['theta'][n]:.4g} ± {summary['theta_std'][n]:.2g}"
                            for n in result.estimated),
                  result.reduced_chi2, result.frames, result.points)

@@ -16,7 +16,7 @@ import time
 import click
 import numpy as np
 
-from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, progress
+from .options import BadInput, Float, Int, StageFailed, announce, emit_json, guard_outputs, json_opt, progress
 
 log = logging.getLogger(__name__)
 
@@ -959,7 +959,7 @@ def _overlay(ctx, folder, source, rig, result, count, ref, times, video, workers
         with progress(instants, "overlay", len(names), verbosity) as frames:
             summary = write_overlay(folder, frames, result, list(source.camera_names), list(names), ref=ref,
                                     fps=fps, video=video)
-    log.info("wrote the overlay %s", folder)
+    announce(log, "wrote the overlay %s", folder)
     return summary
 
 
@@ -975,6 +975,6 @@ def _report(output, run, times, wall, names, backend, truth, ref, as_json, overl
     if as_json:
         emit_json(summary)
     else:
-        log.info("wrote %s: %d frames, %d tracks, %.0f points per frame (min %d), median track %g frames, "
+        announce(log, "wrote %s: %d frames, %d tracks, %.0f points per frame (min %d), median track %g frames, "
                  "reprojection RMS %.3f px", output, summary["frames"], summary["tracks"], summary["points_mean"],
                  summary["points_min"], summary["track_length_median_frames"], summary["reprojection_rms_px"] or 0)

@@ -13,6 +13,7 @@ from .options import (
     Float,
     Int,
     StageFailed,
+    announce,
     emit_json,
     guard_outputs,
     json_opt,
@@ -96,7 +97,7 @@ def simulate(model_file, duration, seed, output, truth_path, substeps, missing, 
     if as_json:
         emit_json(summary)
     else:
-        log.info("wrote %s (%d frames, %d points)", output, summary["frames"], summary["points"])
+        announce(log, "wrote %s (%d frames, %d points)", output, summary["frames"], summary["points"])
 
 
 def _guard(model_file, output, truth_path) -> None:

@@ -19,7 +19,7 @@ import time
 
 import click
 
-from heartcv.tracker.files import check_output_file, check_output_folder, refuse_overlap
+from heartcv.tracker.files import after_outputs, check_output_file, check_output_folder, refuse_overlap
 
 # Upper bounds of counts and sizes that no real run needs and that would exhaust the machine (docs/cli.md §1.4)
 MAX_SEED = 2**63 - 1
@@ -142,9 +142,17 @@ class StageFailed(click.ClickException):
         click.echo(f"Error: {self.format_message()}", err=True)
 
 
+def announce(logger: logging.Logger, fmt: str, *args) -> None:
+    """Log a stage's "wrote ..." line (INFO, on ``logger``) once its outputs are in place (:func:`emit_json`'s
+    rule)."""
+    after_outputs(lambda: logger.info(fmt, *args))
+
+
 def emit_json(summary: dict) -> None:
-    """Write a summary as one JSON document on stdout."""
-    click.echo(json.dumps(summary, indent=2, sort_keys=True, default=_default))
+    """Write a summary as one JSON document on stdout, once the stage's outputs are in place (never for a stage
+    whose renames failed: :func:`~heartcv.tracker.files.after_outputs`)."""
+    text = json.dumps(summary, indent=2, sort_keys=True, default=_default)
+    after_outputs(lambda: click.echo(text))
 
 
 def _default(o):

@@ -13,7 +13,18 @@ import time
 
 import click
 
-from .options import MAX_COUNT, MAX_SEED, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, progress
+from .options import (
+    MAX_COUNT,
+    MAX_SEED,
+    Float,
+    Int,
+    StageFailed,
+    announce,
+    emit_json,
+    guard_outputs,
+    json_opt,
+    progress,
+)
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +169,7 @@ def calibration(ctx, scene_file, output, seed, workers, views, as_json):
     if as_json:
         emit_json(summary)
     else:
-        log.info("wrote %s (%d views x %d cameras) in %.1f s", output, setup.n_views, len(names), wall)
+        announce(log, "wrote %s (%d views x %d cameras) in %.1f s", output, setup.n_views, len(names), wall)
 
 
 def _check_other_file(scene_file, files, field):
@@ -256,4 +267,4 @@ def sequence(ctx, scene_file, output, seed, workers, frames, stiffness_cycle, as
     if as_json:
         emit_json(summary)
     else:
-        log.info("wrote %s (%d frames x %d cameras) in %.1f s", output, count, len(names), wall)
+        announce(log, "wrote %s (%d frames x %d cameras) in %.1f s", output, count, len(names), wall)

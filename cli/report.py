@@ -16,7 +16,7 @@ from pathlib import Path
 
 import click
 
-from .options import BadInput, Int, emit_json, guard_outputs, json_opt, seed_opt
+from .options import BadInput, Int, announce, emit_json, guard_outputs, json_opt, seed_opt
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
     if as_json:
         emit_json(dict(doc, output=output))
     else:
-        log.info("wrote %s (%d figures); %s", output, len(doc["figures"]), _headline(doc))
+        announce(log, "wrote %s (%d figures); %s", output, len(doc["figures"]), _headline(doc))
 
 
 def _fit_frames(runs) -> int | None:

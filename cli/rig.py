@@ -15,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from .options import MAX_IMAGE_SIDE, BadInput, Float, IntPair, emit_json, guard_outputs, json_opt
+from .options import MAX_IMAGE_SIDE, BadInput, Float, IntPair, announce, emit_json, guard_outputs, json_opt
 
 log = logging.getLogger(__name__)
 
@@ -230,5 +230,5 @@ def _summarise(result, output, as_json, warnings=()):
         return
     base = ", ".join(f"{k} {v * 1e3:.6g} mm" for k, v in summary["baselines_m"].items()) or "none (one camera)"
     src = f" from {meta['source_format']}" if "source_format" in meta else ""
-    log.info("wrote %s: %d camera%s (%s)%s, rig frame %s, baselines %s", output, len(cams), "s"[:len(cams) > 1],
+    announce(log, "wrote %s: %d camera%s (%s)%s, rig frame %s, baselines %s", output, len(cams), "s"[:len(cams) > 1],
              ", ".join(c["name"] for c in cams), src, rig_frame, base)

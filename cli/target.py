@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .options import BadInput, Float, IntPair, emit_json, guard_outputs, json_opt
+from .options import BadInput, Float, IntPair, announce, emit_json, guard_outputs, json_opt
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def target(kind, squares, inner_corners, square_mm, marker_mm, dictionary, legac
         emit_json(summary)
     else:
         bw, bh = summary["board_size_mm"]
-        log.info("wrote %s (+ %s, %s): %s %dx%d squares, %.1f x %.1f mm at %.6g dpi (%d px per %g mm square); "
+        announce(log, "wrote %s (+ %s, %s): %s %dx%d squares, %.1f x %.1f mm at %.6g dpi (%d px per %g mm square); "
                  "print the PDF at 100 %%", output, png.name, pdf.name, spec.type, cols, rows, bw, bh,
                  summary["dpi"], summary["square_px"], spec.square_m * 1e3)
 

@@ -8,7 +8,18 @@ from pathlib import Path
 
 import click
 
-from .options import BadInput, Float, Int, StageFailed, emit_json, guard_outputs, json_opt, load_model, progress
+from .options import (
+    BadInput,
+    Float,
+    Int,
+    StageFailed,
+    announce,
+    emit_json,
+    guard_outputs,
+    json_opt,
+    load_model,
+    progress,
+)
 
 log = logging.getLogger(__name__)
 
@@ -765,4 +776,4 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
     if estimator in ("ge", "ukf", "ekf"):
         msg += ", " + ", ".join(f"{n} = {summary['theta_final'][n]:.4g} ± {summary['theta_std_final'][n]:.2g}"
                                 for n in summary["estimated"])
-    log.info(msg)
+    announce(log, "%s", msg)

@@ -44,7 +44,7 @@ import numpy as np
 
 __all__ = [
     "InputError", "LIMITS", "file_hash", "atomic_path", "atomic_folder", "output_group", "written_at_once",
-    "remove_output", "outputs_committed", "MANIFEST_NAME", "read_manifest",
+    "remove_output", "outputs_committed", "after_outputs", "MANIFEST_NAME", "read_manifest",
     "refuse_overlap", "check_output_file", "check_output_folder", "is_heartcv_file", "heartcv_format",
     "check_output_name", "file_kind", "NAME_MAX", "ConcurrentWrite",
     "HAND_WRITTEN_FORMATS", "read_text", "read_yaml",
@@ -230,6 +230,30 @@ def remove_output(path) -> None:
     _place(_PendingRemoval(Path(path)))
 
 
+class _Announcement:
+    """What a stage says it wrote (its "wrote ..." line, its ``--json`` summary), said once its outputs are in
+    place (:func:`after_outputs`): a rename that fails never follows a line saying the file was written."""
+
+    def __init__(self, say):
+        self.say = say
+
+    def commit(self) -> None:
+        pass
+
+    rollback = finish = discard = commit
+
+
+def after_outputs(say) -> None:
+    """Call ``say()`` (a stage's summary: its log line, its ``--json`` document) when the running
+    :func:`output_group` has put every output in place; at once outside a group. Nothing is said when the
+    group's block fails or a rename does."""
+    group = _GROUP.get()
+    if group is None:
+        say()
+    else:
+        group.append(_Announcement(say))
+
+
 def _place(item) -> None:
     """Put a finished output (or a removal) in place: inside an :func:`output_group` with the group's renames,
     else now, with signals held (a replaced file then keeps no backup: there is nothing to undo it with)."""
@@ -329,6 +353,9 @@ def output_group():
         for item in done:
             item.finish()
         _COMMITTED.set(True)
+    for item in pending:       # the stage's summary, now true (signals no longer held: a Ctrl-C here is reported
+        if isinstance(item, _Announcement):     # as coming after the outputs were put in place)
+            item.say()
 
 
 @contextlib.contextmanager

@@ -226,6 +226,66 @@ def test_output_group_undoes_the_renames_done_when_a_later_one_fails(tmp_path, m
     assert _listing(tmp_path) == before
 
 
+def test_after_outputs_speaks_only_once_every_output_is_in_place(tmp_path, monkeypatch):
+    """A stage's "wrote ..." line and --json summary (after_outputs): said after the renames, in the order given;
+    never when the block or a rename fails; at once outside a group."""
+    import errno
+
+    said = []
+    with F.output_group():
+        with F.atomic_path(tmp_path / "a.txt") as tmp:
+            tmp.write_text("a")
+        F.after_outputs(lambda: said.append(("first", (tmp_path / "a.txt").exists())))
+        F.after_outputs(lambda: said.append(("second", (tmp_path / "a.txt").exists())))
+        assert said == []
+    assert said == [("first", True), ("second", True)]
+    F.after_outputs(lambda: said.append("outside"))
+    assert said[-1] == "outside"
+    said.clear()
+    with pytest.raises(RuntimeError), F.output_group():
+        F.after_outputs(lambda: said.append("failed block"))
+        raise RuntimeError("stage failed")
+    real = os.replace
+
+    def failing(src, dst):
+        raise OSError(errno.ENOSPC, "No space left on device", str(dst))
+
+    monkeypatch.setattr(F.os, "replace", failing)
+    with pytest.raises(OSError, match="No space"), F.output_group():
+        with F.atomic_path(tmp_path / "b.txt") as tmp:
+            tmp.write_text("b")
+        F.after_outputs(lambda: said.append("failed rename"))
+    monkeypatch.setattr(F.os, "replace", real)
+    assert said == [] and not (tmp_path / "b.txt").exists()
+
+
+def test_a_stage_whose_rename_fails_prints_no_summary(tmp_path, monkeypatch):
+    """heartcv target --json with a full disk at the rename: exit 1 naming the reason, and neither the JSON
+    summary on stdout nor a "wrote" line (both came before the renames); the same command prints both when the
+    renames succeed."""
+    import errno
+    import json
+
+    args = ["target", "--type", "chessboard", "--square-mm", "25", "--inner-corners", "8x5",
+            "-o", str(tmp_path / "t.yaml")]
+    ok = CliRunner().invoke(main, args + ["--json"])
+    assert ok.exit_code == 0 and json.loads(ok.stdout)["output"].endswith("t.yaml")
+    wrote = CliRunner().invoke(main, args)
+    assert wrote.exit_code == 0 and "wrote " in wrote.stderr
+    for p in list(tmp_path.iterdir()):
+        p.unlink()
+
+    def full(src, dst):
+        raise OSError(errno.ENOSPC, "No space left on device", str(dst))
+
+    monkeypatch.setattr(F.os, "replace", full)
+    for extra in (["--json"], []):
+        res = CliRunner().invoke(main, args + extra)
+        assert res.exit_code == 1 and "No space left on device" in res.stderr
+        assert res.stdout == "" and "wrote " not in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 class _Term(Exception):
     pass
 
