@@ -66,7 +66,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
     guard_outputs({"-o/--output": output}, inputs, folders=[("-o/--output", output, PRODUCER)])
     runs = _load_estimates(estimates)
     _check_sequences(runs, allow_mixed)
-    noise, noise_source = _measurement_noise(meas_file, runs, allow_mixed)
+    noise, noise_norm, noise_source = _measurement_noise(meas_file, runs, allow_mixed)
     phases = _phases(meas_file)
     truth = _load_truth(truth_file, runs, allow_mixed, meas_file) if truth_file else None
     for label, r in runs.items():
@@ -81,7 +81,8 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
     compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
                                theta, LEVEL, fit_frames,
                                rng=np.random.default_rng(seed) if resamples else None, resamples=resamples or 100)
-    metrics = _metrics_document(runs, compared, noise, noise_source, truth)
+    metrics = _metrics_document(runs, compared, noise, noise_norm, noise_source, truth)
+    _warn_unpaired(runs, compared)
     metrics["tracks"] = _track_motion(meas_file, runs)
     metrics["rig_check"] = _rig_check(meas_file)
     metrics.update(_provenance(runs, truth_file, meas_file))
@@ -91,6 +92,20 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
         emit_json(dict(doc, output=output))
     else:
         announce(log, "wrote %s (%d figures); %s", output, len(doc["figures"]), _headline(doc))
+
+
+def _warn_unpaired(runs, compared) -> None:
+    """Warn where runs are not compared on the same observations: other held-out tracks, or a run without a
+    prediction for observations that hold predicted (its means then leave out those, possibly the hardest)."""
+    held = {label: sorted(r["est"].meta.get("heldout_points") or []) for label, r in runs.items()}
+    if len({tuple(v) for v in held.values()}) > 1:
+        log.warning("runs hold out different tracks (track --holdout/--seed): %s; their errors are over different "
+                    "tracks and the ratios to hold are left out", ", ".join(f"{k} {len(v)}" for k, v in held.items()))
+    for label, m in compared["per_run"].items():
+        iv = m.get("ratio_to_hold_interval") or {}
+        if iv.get("numerator_missing"):
+            log.warning("%s: no prediction for %d observations that hold predicted; its errors leave them out",
+                        label, iv["numerator_missing"])
 
 
 def _fit_frames(runs) -> int | None:
@@ -155,7 +170,8 @@ def _write_folder(tmp: Path, metrics: dict, runs, per, truth, noise, dpi, phases
         figures.append((name, f"{p} (given with --image)"))
     tracks = metrics.get("tracks") or {}
     figures += write_figures(tmp, runs, per, truth, noise, dpi, LEVEL, phases, tracks.get("noise_norm_bound_m"),
-                             metrics.get("fit_frames"), (tracks.get("heart_rate_windows") or {}).get("windows"))
+                             metrics.get("fit_frames"), (tracks.get("heart_rate_windows") or {}).get("windows"),
+                             noise_norm=metrics.get("measurement_noise_norm_mean_m"))
     metrics["figures"] = [f for f, _ in figures]
     metrics["files"] = [f for f, _ in figures] + ["metrics.json", "summary.md", "index.html"]
     doc = _jsonable(metrics)
@@ -260,11 +276,13 @@ def _phases(meas_file):
 
 
 def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
-    """(σ in m, source) from --measurements, else from an estimate file's meta ``measurement_noise_m``."""
+    """(σ, E|v|, source), in m: from --measurements the per-coordinate level σ and the mean norm E|v| of the noise
+    its covariances describe (a stereo point's depth noise several times its lateral noise: σ·√(8/π) would
+    overstate the floor), else σ from an estimate file's meta ``measurement_noise_m`` and E|v| = σ·√(8/π)."""
     import numpy as np
 
     from heartcv.tracker.io import file_hash
-    from heartcv.tracker.metrics import measurement_noise_level
+    from heartcv.tracker.metrics import mean_noise_norm, mean_noise_norm_of_covariances, measurement_noise_level
 
     if meas_file:
         m = _measurements(meas_file)
@@ -279,12 +297,14 @@ def _measurement_noise(meas_file, runs: dict, allow_mixed: bool):
             elif not recorded:
                 _mismatch(r["est"].times, m.times, r["path"], meas_file, allow_mixed, "the measurement file")
         sigma = measurement_noise_level(m.covariances, m.seen)
-        return (sigma, "measurements") if np.isfinite(sigma) else (None, None)
+        if not np.isfinite(sigma):
+            return None, None, None
+        return sigma, mean_noise_norm_of_covariances(m.covariances, m.seen), "measurements"
     for r in runs.values():
         v = r["est"].meta.get("measurement_noise_m")
         if isinstance(v, (int, float)) and np.isfinite(v) and v > 0:
-            return float(v), f"estimate meta ({r['path']})"
-    return None, None
+            return float(v), mean_noise_norm(float(v)), f"estimate meta ({r['path']})"
+    return None, None, None
 
 
 def _rig_check(meas_file) -> dict | None:
@@ -523,13 +543,12 @@ PER_ESTIMATOR_KEYS = (
     "prediction_error_after_fit_continuing_mean_m", "prediction_error_after_fit_continuing_count",
     "heldout_prediction_error_after_fit_mean_m", "log_likelihood_per_point", "log_likelihood_points",
     "log_likelihood_within_fit_per_point", "log_likelihood_after_fit_per_point", "ratio_to_hold_interval",
-    "heldout_ratio_to_hold_interval")
+    "heldout_ratio_to_hold_interval", "prediction_error_after_fit_ratio_to_hold")
 
 
-def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
+def _metrics_document(runs, compared, noise, noise_norm, noise_source, truth) -> dict:
     """The metrics.json document (docs/formats.md §14) from :func:`tracker.metrics.compare_runs`."""
     from heartcv.tracker import __version__
-    from heartcv.tracker.metrics import mean_noise_norm
 
     estimators = {}
     for label, r in runs.items():
@@ -549,7 +568,7 @@ def _metrics_document(runs, compared, noise, noise_source, truth) -> dict:
         "format": REPORT_FORMAT[0], "format_version": REPORT_FORMAT[1], "heartcv_version": __version__,
         "producer": PRODUCER, "nis_level": LEVEL, "sequence": compared["sequence"],
         "measurement_noise_m": noise, "measurement_noise_source": noise_source,
-        "measurement_noise_norm_mean_m": mean_noise_norm(noise) if noise is not None else None,
+        "measurement_noise_norm_mean_m": noise_norm,
         "measurement_truth_error_mean_m": compared["measurement_truth_error_mean_m"],
         "truth": {"kind": truth["kind"] if truth else None, "positions": bool(truth and truth["positions"]),
                   "notes": truth["notes"] if truth else []},

@@ -64,7 +64,9 @@ def _facts(doc) -> list:
              + (" (mixed sequences: --allow-mixed)" if s["mixed"] else "") + "."]
     noise = doc["measurement_noise_m"]
     facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']}); "
-                 f"its mean 3-D norm σ·√(8/π): {mm(doc['measurement_noise_norm_mean_m'])}."
+                 f"its mean 3-D norm E|v|: {mm(doc['measurement_noise_norm_mean_m'])}"
+                 + (" (of the covariances themselves, anisotropy included)" if doc['measurement_noise_source']
+                    == "measurements" else " (σ·√(8/π))") + "."
                  if noise is not None else "Measurement noise: unknown (give --measurements).")
     facts += _rig_facts(doc.get("rig_check"))
     facts += _track_facts(doc.get("tracks"), doc["measurement_noise_norm_mean_m"])
@@ -285,13 +287,17 @@ def _fit_split_rows(doc):
         v, h = e.get(key), hold.get(key)
         return f"{v / h:.3f}" if v is not None and h else "–"
 
+    def paired(e):      # on the observations both predicted (hold cannot predict a track's first sighting)
+        r = e.get("prediction_error_after_fit_ratio_to_hold")
+        return "–" if r is None else f"{r:.3f}"
+
     head = ["estimator", f"pred. error within the fit (1 ≤ k < {n})", f"pred. error after it (k ≥ {n})",
             "after it / hold's", "after it, tracks seen the frame before", "the same / hold's",
             "held-out pred. error after it", "log lik. / point within / after"]
     rows = []
     for label, e in est.items():
         rows.append([label, mm(e.get("prediction_error_within_fit_mean_m")),
-                     mm(e.get("prediction_error_after_fit_mean_m")), ratio(e, "prediction_error_after_fit_mean_m"),
+                     mm(e.get("prediction_error_after_fit_mean_m")), paired(e),
                      mm(e.get("prediction_error_after_fit_continuing_mean_m")),
                      ratio(e, "prediction_error_after_fit_continuing_mean_m"),
                      mm(e.get("heldout_prediction_error_after_fit_mean_m")),
@@ -299,8 +305,9 @@ def _fit_split_rows(doc):
                      f"{_num(e.get('log_likelihood_after_fit_per_point'), '{:.4f}')}"])
     intro = (f"The parameters (and an estimated input) were fitted to frames 0–{n - 1} (heartcv fit --frames or "
              f"--duration): the predictions of frames 1–{n - 1} are in-sample, those from frame {n} on "
-             "out-of-sample. Tracks seen the frame before leave out those re-appearing after a gap, which hold "
-             "predicts at their last position.")
+             "out-of-sample. The ratios to hold's are over the observations both predicted (hold cannot predict a "
+             "track's first sighting). Tracks seen the frame before leave out those re-appearing after a gap, which "
+             "hold predicts at their last position.")
     return "Within and after the fitted frames", intro, head, rows
 
 

@@ -298,7 +298,7 @@ def truth_error_figure(series: dict, colors: dict, measurement_error: float | No
                               label=f"{name} (mean, k ≥ 1: filtered {means[0]}, predicted {means[1]})"))
     handles.append(Patch(color="0.6", alpha=0.3, label="±1 std over the points"))
     refs = [(measurement_error, _MEAS_STYLE, "the measurements' own error, mean {:#.3g} mm"),
-            (noise_norm, _NOISE_STYLE, "measurement noise mean norm σ·√(8/π) = {:#.3g} mm")]
+            (noise_norm, _NOISE_STYLE, "measurement noise mean norm E|v| = {:#.3g} mm")]
     refs = [(y, style, text.format(y * MM)) for y, style, text in refs if y is not None and np.isfinite(y)]
     for y, style, text in refs:
         for ax in (top, bottom):
@@ -382,7 +382,8 @@ def run_rates(runs: dict, key: str = "heart_rate") -> dict:
 
 
 def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 150,
-                  level: float = 0.95, phases=None, noise_bound=None, fit_frames=None, rate_windows=None) -> list:
+                  level: float = 0.95, phases=None, noise_bound=None, fit_frames=None, rate_windows=None,
+                  noise_norm=None) -> list:
     """Write the report's PNGs into ``folder``; returns [(file name, caption)] in report order.
 
     Parameters
@@ -430,7 +431,8 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
         save_png(fig, folder / name, dpi=dpi)
         out.append((name, caption))
 
-    noise_norm = mean_noise_norm(noise) if noise else None
+    if noise_norm is None:
+        noise_norm = mean_noise_norm(noise) if noise else None
     t0 = next(iter(ps.values()))["times"]
     fit_end = float(t0[fit_frames]) if fit_frames is not None and 0 < fit_frames < len(t0) else None
     save(prediction_error_figure({k: (p["times"], p["error_mean"], p["error_var"],
@@ -490,7 +492,7 @@ def write_figures(folder: Path, runs: dict, per: dict, truth, noise, dpi: int = 
              "truth_error.png", CAPTIONS["truth_error.png"]
              + (" Long dashes: the mean error of the measurements themselves against the truth, over the same "
                 "observations." if meas_err is not None else "")
-             + (" Dotted: the mean norm of the measurement noise, σ·√(8/π)." if noise else ""))
+             + (" Dotted: the mean norm of the measurement noise, E|v|." if noise else ""))
     save(step_time_figure({k: (p["times"], p["step_time"], per[k]["step_time_median_s"],
                                   per[k]["step_time_p95_s"]) for k, p in ps.items()}, colors),
          "step_time.png", CAPTIONS["step_time.png"])

@@ -93,3 +93,36 @@ def test_the_software_of_every_input_is_recorded_and_reported(files, tmp_path):
     summary = (tmp_path / "rep" / "summary.md").read_text()
     assert "Software the inputs were written with: ge, kf, hold: " in summary
     assert f"numpy {np.__version__}" in summary and f"scipy {scipy.__version__}" in summary
+
+
+def test_runs_with_other_held_out_tracks_or_missing_predictions_are_flagged(files, tmp_path):
+    """hold made with another --seed holds out other tracks: a warning, and no ratio to it (the audit's 1.506 over
+    a tenth of the held-out observations). A kf file with its worst fifth of predictions removed (NaN): a warning
+    counting them (its mean and ratio to hold otherwise look better, silently)."""
+    import dataclasses
+
+    from heartcv.tracker.io import read_estimates, write_estimates
+
+    res = _run("-q", "track", files / "m.npz", "--model", PAPER, "--estimator", "hold", "--holdout", "0.2", "--seed",
+               "9", "-o", tmp_path / "hold9.npz")
+    assert res.exit_code == 0, res.output
+    out = _run("report", files / "ge.npz", tmp_path / "hold9.npz", "-o", tmp_path / "rep", "--json")
+    assert out.exit_code == 0, out.output
+    assert "hold out different tracks" in out.stderr
+    doc = json.loads((tmp_path / "rep" / "metrics.json").read_text())
+    assert doc["estimators"]["ge"]["ratio_to_hold_interval"] is None
+    kf = read_estimates(files / "kf.npz")
+    inn = np.array(kf.innovations, float)
+    norms = np.linalg.norm(inn, axis=-1)
+    worst = norms > np.nanquantile(norms[1:], 0.8)
+    worst[0] = False
+    inn[worst] = np.nan
+    pred = np.array(kf.predictions, float)
+    pred[worst] = np.nan
+    write_estimates(tmp_path / "kf_worst.npz", dataclasses.replace(kf, innovations=inn, predictions=pred),
+                    dict(kf.meta))
+    out = _run("report", tmp_path / "kf_worst.npz", files / "hold.npz", "-o", tmp_path / "rep2", "--json")
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "rep2" / "metrics.json").read_text())
+    missing = doc["estimators"]["kf"]["ratio_to_hold_interval"]["numerator_missing"]
+    assert missing > 0 and f"no prediction for {missing} observations that hold predicted" in out.stderr

@@ -467,3 +467,29 @@ def test_rate_agreement_against_hand_computation():
     assert tm.rate_agreement(windows, t, mean, std, z=3.0)["agree"] == 2
     assert tm.rate_agreement(windows[1:2], t, mean, std) is None
     assert tm.rate_agreement(windows, t + 100.0, mean, std) is None     # no window overlaps the run
+
+
+def test_mean_noise_norm_of_covariances_against_closed_forms_and_monte_carlo():
+    """E|v| of v ~ N(0, C): chi(3) sigma for C = sigma^2 I3, the Rayleigh mean sigma sqrt(pi/2) in a plane, the
+    half-normal sigma sqrt(2/pi) on a line; an anisotropic stereo-like C (depth 10x lateral) against 2e6 draws
+    (fixed seed), below sigma sqrt(8/pi) of its RMS per-coordinate sigma; NaN and unseen entries left out."""
+    s = 1e-4
+    f = tm.mean_noise_norm_of_covariances
+    assert f(np.eye(3) * s * s) == pytest.approx(stats.chi(3).mean() * s, rel=2e-5)
+    assert f(np.diag([s * s, s * s, 0.0])) == pytest.approx(s * np.sqrt(np.pi / 2), rel=2e-5)
+    assert f(np.diag([s * s, 0.0, 0.0])) == pytest.approx(s * np.sqrt(2 / np.pi), rel=2e-5)
+    rng = np.random.default_rng(11)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    c = q @ np.diag([1.0, 1.0, 100.0]) @ q.T * (0.016e-3) ** 2
+    draws = rng.multivariate_normal(np.zeros(3), c, size=2_000_000)
+    mc = np.linalg.norm(draws, axis=1)
+    assert f(c) == pytest.approx(mc.mean(), abs=4 * mc.std() / np.sqrt(mc.size))
+    sigma = tm.measurement_noise_level(c[None, None])
+    assert f(c) < 0.9 * tm.mean_noise_norm(sigma)
+    cov = np.full((2, 3, 3, 3), np.nan)
+    cov[0, 0], cov[1, 2], cov[0, 1] = np.eye(3) * s * s, np.eye(3) * 4 * s * s, np.eye(3) * 9 * s * s
+    seen = np.isfinite(cov).all(axis=(-2, -1))
+    assert f(cov) == pytest.approx(stats.chi(3).mean() * s * (1 + 2 + 3) / 3, rel=2e-5)
+    seen[0, 1] = False
+    assert f(cov, seen) == pytest.approx(stats.chi(3).mean() * s * 1.5, rel=2e-5)
+    assert np.isnan(f(np.full((1, 1, 3, 3), np.nan)))
