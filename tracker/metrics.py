@@ -741,15 +741,16 @@ def compare_runs(runs: dict, truth_positions: dict | None = None, truth_theta=No
 
 def _paired_norms(runs: dict) -> tuple[dict, callable]:
     """The error norms of steps k >= 1 per run, ``{label: (used (K-1, P), held out (K-1, P))}``, and
-    ``comparable(x, y)``: whether two runs can be paired observation by observation (the same points, frames and
-    held-out tracks; another --holdout or --seed holds out other tracks)."""
+    ``comparable(x, y)``: whether two runs can be paired observation by observation (the same sequence, points,
+    frames and held-out tracks; another --holdout or --seed holds out other tracks; runs of other recordings given
+    with ``report --allow-mixed`` are never paired)."""
     norms, keys = {}, {}
     for label, est in runs.items():
         used, held, _ = _split_norms(est)
         norms[label] = (used[1:], held[1:])
         keys[label] = (np.asarray(est.point_ids).tobytes(), used.shape,
                        frozenset(int(i) for i in (est.meta.get("heldout_points") or [])))
-    return norms, lambda x, y: keys[x] == keys[y]
+    return norms, lambda x, y: keys[x] == keys[y] and sequence_mismatch(runs[x], runs[y]) is None
 
 
 def _after_fit_ratios_to_hold(runs: dict, fit_frames: int | None) -> dict:

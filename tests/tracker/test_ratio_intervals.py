@@ -208,3 +208,17 @@ def test_missing_predictions_are_counted_on_either_side():
     b[7, 0] = np.nan
     ci = paired_ratio_interval(a, b, np.random.default_rng(0), resamples=100)
     assert ci["numerator_missing"] == 2 and ci["denominator_missing"] == 1 and ci["observations"] == 77
+
+
+def test_runs_of_other_measurement_files_are_not_paired(runs):
+    """report --allow-mixed lets runs of other recordings into one report; their observations are not the same
+    (the audit's 'paired' 0.526 between two recordings): no ratio."""
+    other = dataclasses.replace(runs["hold"], meta=dict(runs["hold"].meta,
+                                                        inputs_hash={"measurements": "sha256:other"}))
+    ge = dataclasses.replace(runs["ge"], meta=dict(runs["ge"].meta, inputs_hash={"measurements": "sha256:this"}))
+    res = compare_runs({"ge": ge, "hold": other}, rng=np.random.default_rng(0), resamples=200, fit_frames=10)
+    assert res["per_run"]["ge"]["ratio_to_hold_interval"] is None
+    assert res["per_run"]["ge"]["prediction_error_after_fit_ratio_to_hold"] is None
+    same = dataclasses.replace(other, meta=dict(other.meta, inputs_hash={"measurements": "sha256:this"}))
+    assert compare_runs({"ge": ge, "hold": same}, rng=np.random.default_rng(0),
+                        resamples=200)["per_run"]["ge"]["ratio_to_hold_interval"] is not None
