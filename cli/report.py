@@ -53,6 +53,7 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
     prediction error, parameter trajectories with ±2σ bands, NIS with its χ² band, error against the truth,
     step times. Writes the folder OUTPUT atomically."""
     import numpy as np
+    from threadpoolctl import threadpool_limits
 
     from heartcv.tracker import metrics as tm
     from heartcv.tracker.files import atomic_folder
@@ -78,12 +79,15 @@ def report(estimates, truth_file, meas_file, output, allow_mixed, dpi, images, r
         truth["theta"] = None
     theta = ({k: truth["theta"] for k in runs if k not in truth["left_out"]}
              if truth is not None and truth["theta"] is not None else None)
-    compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
-                               theta, LEVEL, fit_frames,
-                               rng=np.random.default_rng(seed) if resamples else None, resamples=resamples or 100)
+    with threadpool_limits(1):   # per-frame bootstrap sums: one BLAS thread (docs/spec/estimator.md §7.5)
+        compared = tm.compare_runs({k: r["est"] for k, r in runs.items()}, truth["positions"] if truth else None,
+                                   theta, LEVEL, fit_frames,
+                                   rng=np.random.default_rng(seed) if resamples else None,
+                                   resamples=resamples or 100)
     metrics = _metrics_document(runs, compared, noise, noise_norm, noise_source, truth)
     _warn_unpaired(runs, compared)
-    metrics["tracks"] = _track_motion(meas_file, runs)
+    with threadpool_limits(1):   # small matrices per frame (field_ar_prediction's 108 x 108 solves): one BLAS thread
+        metrics["tracks"] = _track_motion(meas_file, runs)
     metrics["rig_check"] = _rig_check(meas_file)
     metrics.update(_provenance(runs, truth_file, meas_file))
     with atomic_folder(output, producer=PRODUCER) as tmp:

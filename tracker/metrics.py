@@ -31,6 +31,7 @@ import math
 import zlib
 
 import numpy as np
+import scipy.linalg as sla
 
 from .measurements import EstimateSet
 from .params import NAMES
@@ -972,16 +973,32 @@ def field_ar_prediction(positions, order: int = 6, ridge: float = 1.0, degree: i
     lagged = np.full((K, p * n * 3), np.nan)
     for k in range(p + 1, K):
         lagged[k] = np.concatenate([coef[k - i] for i in range(1, p + 1)])
+    # the normal equations over the rows before k, accumulated as k advances (O(K), not a refit over all k rows)
+    good = np.isfinite(lagged).all(axis=1) & np.isfinite(coef).all(axis=1)
+    ZtZ = np.zeros((lagged.shape[1], lagged.shape[1]))
+    ZtT = np.zeros((lagged.shape[1], coef.shape[1]))
+    count, added = 0, 0
     for k in range(int(start), K):
+        while added < k:
+            if good[added]:
+                ZtZ += np.outer(lagged[added], lagged[added])
+                ZtT += np.outer(lagged[added], coef[added])
+                count += 1
+            added += 1
         if k not in frames or not np.isfinite(lagged[k]).all():
             continue
-        rows = np.flatnonzero(np.isfinite(lagged[:k]).all(axis=1) & np.isfinite(coef[:k]).all(axis=1))
-        if rows.size < 2:
+        if count < 2:
             continue
-        Z, T = lagged[rows], coef[rows]
-        G = Z.T @ Z
+        G = ZtZ.copy()
         G[np.diag_indices_from(G)] += ridge * float(np.mean(np.diag(G)))
-        W = np.linalg.lstsq(G, Z.T @ T, rcond=None)[0]
+        W = None
+        if ridge > 0:      # G + ridge I is positive definite: a Cholesky solve, not an SVD per frame
+            try:
+                W = sla.cho_solve(sla.cho_factor(G, check_finite=False), ZtT, check_finite=False)
+            except np.linalg.LinAlgError:
+                W = None
+        if W is None:
+            W = np.linalg.lstsq(G, ZtT, rcond=None)[0]
         A, D = frames[k]
         c_hat = (lagged[k] @ W).reshape(n, 3)
         hold[k] = float(np.linalg.norm(D, axis=1).mean())

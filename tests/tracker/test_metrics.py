@@ -341,6 +341,11 @@ def test_field_ar_prediction_is_exact_on_an_autoregressive_field_and_causal():
     cut[80:] += 1e-3 * rng.standard_normal(cut[80:].shape)      # the future changes: the past predictions do not
     r2 = field_ar_prediction(cut, order=4, ridge=0.0, start=40)
     np.testing.assert_array_equal(r2.predicted[:80], r.predicted[:80])
+    # a penalty (the Cholesky solve of the normal equations accumulated frame by frame): as exact, as causal
+    rr = field_ar_prediction(y, order=4, ridge=1e-10, start=40)
+    assert np.nanmax(rr.predicted) < 1e-4 * np.nanmean(rr.hold)
+    np.testing.assert_array_equal(field_ar_prediction(cut, order=4, ridge=1e-10, start=40).predicted[:80],
+                                  rr.predicted[:80])
     sigma = 1e-5
     rn = field_ar_prediction(y + sigma * rng.standard_normal(y.shape), order=4, ridge=0.1, start=40)
     np.testing.assert_allclose(np.nanmean(rn.oracle), np.sqrt(2) * mean_noise_norm(sigma), rtol=0.05)
