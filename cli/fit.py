@@ -123,6 +123,11 @@ def fit(measurements, model_file, output, frames, duration, starts, seed, max_ev
             raise BadInput(f"--duration {duration:g}: the first {duration:g} s of {measurements} hold {frames} "
                            "frame(s); at least 2 are needed")
         log.info("--duration %g s: the first %d frames", duration, frames)
+        if frames >= meas.n_frames:
+            log.warning("--duration %g s: %s holds only %d frames (%.3g s): every frame is fitted, none is left "
+                        "after the fit to test the estimators out of sample (give a shorter --duration or "
+                        "--frames, e.g. half the recording)", duration, measurements, meas.n_frames,
+                        float(meas.times[-1] - meas.times[0]) if meas.n_frames > 1 else 0.0)
     m = load_model(model_file)
     if not m.config.estimation.estimate:
         raise BadInput(f"{model_file}: estimation.estimate is empty; nothing to fit")

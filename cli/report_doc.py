@@ -62,6 +62,9 @@ def _facts(doc) -> list:
              + (f" (the measurement file's other {left} left out by the fit's selection: off the patch or seen "
                 "in fewer than two frames)" if left else "")
              + (" (mixed sequences: --allow-mixed)" if s["mixed"] else "") + "."]
+    if doc.get("fit_frames") is not None and doc["fit_frames"] >= s["frames"]:
+        facts.append(f"All {s['frames']} frames were fitted (heartcv fit --frames/--duration): every error and ratio "
+                     "below is in sample; none tests the estimators on frames the fit did not see.")
     noise = doc["measurement_noise_m"]
     facts.append(f"Measurement noise σ per coordinate: {mm(noise)} (from {doc['measurement_noise_source']}); "
                  f"its mean 3-D norm E|v|: {mm(doc['measurement_noise_norm_mean_m'])}"

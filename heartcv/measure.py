@@ -220,6 +220,11 @@ def auto_size_factor(frames, mask=None) -> tuple[float, float]:
 MIN_REDUCED_SIDE_PX = 144
 #: The step between the reductions :func:`auto_reduction` tries (each 10 % more than the last).
 REDUCTION_STEP = 1.1
+#: Frames that read at most this many times :data:`SHARP_BLUR_PX` are measured as they are: area averaging by a
+#: factor near 1 adds about 0.15 px of its own blur, so a frame just over the line (the in-vivo right camera reads
+#: 1.006) only reads sharp again at a factor of about 1.6, a cliff that threw away 38 % of the resolution (GE
+#: 0.79x -> 0.87x hold on the mirrored in-vivo pair).
+NEAR_SHARP = 1.25
 
 
 def _median_blur(frames, mask=None) -> float:
@@ -417,16 +422,16 @@ def field_order_clear(votes: int, pairs: int, level: float = 0.05) -> bool:
 
 
 def auto_reduction(frames, mask=None) -> tuple[float, float, float]:
-    """``(factor, blur, reduced_blur)``: how much to reduce blurry or oversampled frames so that their texture is
-    as sharp as the sparse tracker's sizes expect (docs/cli.md §10.3). ``blur`` is the median
-    :func:`texture_blur_px` of ``frames`` (the reference camera's first frames) over ``mask``; at most
-    :data:`SHARP_BLUR_PX` (or not finite: a flat image) the factor is 1. Otherwise the factors ``blur /
-    SHARP_BLUR_PX``, then each :data:`REDUCTION_STEP` times the last, are tried on the frames reduced by area
-    averaging, and the first whose reduced frames read at most :data:`SHARP_BLUR_PX` is taken, but none that
-    leaves a side under :data:`MIN_REDUCED_SIDE_PX` (or the image's own smaller side, if smaller);
-    ``reduced_blur`` is what the frames read at the factor taken."""
+    """``(factor, blur, reduced_blur)``: how much to reduce blurry or oversampled frames so that their texture is as
+    sharp as the sparse tracker's sizes expect (docs/cli.md §10.3). ``blur`` is the median :func:`texture_blur_px` of
+    ``frames`` (the reference camera's first frames) over ``mask``; at most :data:`NEAR_SHARP` times
+    :data:`SHARP_BLUR_PX` (or not finite: a flat image) the factor is 1. Otherwise the factors ``blur / SHARP_BLUR_PX``,
+    then each :data:`REDUCTION_STEP` times the last, are tried on the frames reduced by area averaging, and the first
+    whose reduced frames read at most :data:`SHARP_BLUR_PX` is taken, but none that leaves a side under
+    :data:`MIN_REDUCED_SIDE_PX` (or the image's own smaller side, if smaller); ``reduced_blur`` is what the frames read
+    at the factor taken."""
     blur = _median_blur(frames, mask)
-    if not (math.isfinite(blur) and blur > SHARP_BLUR_PX):
+    if not (math.isfinite(blur) and blur > SHARP_BLUR_PX * NEAR_SHARP):
         return 1.0, blur, blur
     h, w = np.asarray(frames[0]).shape[:2]
     cap = max(1.0, min(h, w) / MIN_REDUCED_SIDE_PX)

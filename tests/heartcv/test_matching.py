@@ -17,6 +17,7 @@ from heartcv.matching import (
     descriptor_v_offset,
     local_planes,
     match_points,
+    near_search_depth,
     normal_hypotheses,
     patch_offsets,
     ray_depth_range,
@@ -435,3 +436,22 @@ def test_descriptor_epipolar_distance_against_the_rig():
     assert descriptor_epipolar_distance(cams[0], cams[1], inl)[0] < 0.3
     assert 5.0 < descriptor_epipolar_distance(cams[0], stale, descriptor_inliers(cams[0], stale, noisy))[0] < 10.0
     assert len(descriptor_inliers(cams[0], cams[1], [(ua[:5], ub[:5])])[0][0]) == 0
+
+
+def test_the_nearest_depth_searched_follows_the_shortest_baseline():
+    """2 cm for a rig whose baselines are at least 1 cm; twice the shortest baseline from the reference camera
+    below that (a close endoscopic view: 5 mm -> 10 mm, 2.5 mm -> 5 mm); a single camera or coincident centres:
+    2 cm. A three-camera rig: the baselines from the reference camera only."""
+    K = np.array([[390.0, 0.0, 179.5], [0.0, 390.0, 143.5], [0.0, 0.0, 1.0]])
+
+    def cam(x):
+        return Camera("c", 360, 288, K, np.zeros(0), pose_matrix(np.eye(3), [-x, 0.0, 0.0]))
+
+    assert near_search_depth([cam(0.0), cam(0.05)], 0) == 0.02
+    assert near_search_depth([cam(0.0), cam(0.005)], 0) == pytest.approx(0.01, rel=1e-12)
+    assert near_search_depth([cam(0.0), cam(0.0025)], 1) == pytest.approx(0.005, rel=1e-12)
+    assert near_search_depth([cam(0.0)], 0) == 0.02
+    assert near_search_depth([cam(0.0), cam(0.0)], 0) == 0.02
+    trio = [cam(0.0), cam(0.003), cam(0.1)]
+    assert near_search_depth(trio, 2) == pytest.approx(0.02)
+    assert near_search_depth(trio, 0) == pytest.approx(0.006, rel=1e-12)

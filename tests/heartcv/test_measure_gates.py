@@ -237,15 +237,16 @@ def test_reduced_camera_sees_what_the_reduced_image_shows():
 
 
 def test_auto_reduction_reduces_blurry_frames_until_they_read_sharp():
-    """Sharp frames (blur <= SHARP_BLUR_PX) and a flat image keep factor 1. Blurry frames (white noise blurred by
-    sigma = 3 and 5 px) get the smallest factor of the sequence blur, blur x 1.1, ... at which the frames reduced by
-    area averaging read at most SHARP_BLUR_PX (brute force: the factor before it reads more), and the factor is
-    about sigma (a reduction by f divides a Gaussian blur by f; the reduced pixels' area adds a little). A small
-    image stops at MIN_REDUCED_SIDE_PX."""
+    """Sharp frames (blur <= SHARP_BLUR_PX, or up to NEAR_SHARP times it) and a flat image keep factor 1. Blurry frames
+    (white noise blurred by sigma = 3 and 5 px) get the smallest factor of the sequence blur, blur x 1.1, ... at which
+    the frames reduced by area averaging read at most SHARP_BLUR_PX (brute force: the factor before it reads more), and
+    the factor is about sigma (a reduction by f divides a Gaussian blur by f; the reduced pixels' area adds a little). A
+    small image stops at MIN_REDUCED_SIDE_PX."""
     import cv2
 
     from heartcv.measure import (
         MIN_REDUCED_SIDE_PX,
+        NEAR_SHARP,
         REDUCTION_STEP,
         SHARP_BLUR_PX,
         auto_reduction,
@@ -260,6 +261,11 @@ def test_auto_reduction_reduces_blurry_frames_until_they_read_sharp():
     assert f == 1.0 and blur == reduced and blur <= SHARP_BLUR_PX
     f, blur, reduced = auto_reduction([np.full((50, 60), 9, np.uint8)])
     assert f == 1.0 and np.isnan(blur)
+    # just over the line (the in-vivo right camera reads 1.006): left as it is, not reduced ~1.6x (area averaging
+    # near factor 1 adds blur of its own, so the first factor that reads sharp again was far larger)
+    near = cv2.GaussianBlur(noise, (0, 0), 1.3)
+    f, blur, reduced = auto_reduction([near])
+    assert SHARP_BLUR_PX < blur < NEAR_SHARP * SHARP_BLUR_PX and f == 1.0 and reduced == blur
     for sigma in (3.0, 5.0):
         img = cv2.GaussianBlur(noise, (0, 0), sigma)
         f, blur, reduced = auto_reduction([img])
