@@ -745,6 +745,11 @@ def test_fit_duration_is_the_frames_of_those_seconds(tmp_path, blind_file):
                                     "--duration", "0.001"])
     assert res.exit_code == 2 and "--duration 0.001" in res.output and "at least 2" in res.output
     assert not (tmp_path / "c.yaml").exists()
+    # longer than the recording: every frame fitted, nothing left out of sample; said, not refused
+    res = CliRunner().invoke(main, ["fit", blind_file, "--model", PAPER, "-o", str(tmp_path / "d.yaml"),
+                                    "--duration", "100"])
+    assert res.exit_code == 0 and "every frame is fitted" in res.stderr and "out of sample" in res.stderr
+    assert read_parameters(tmp_path / "d.yaml").estimated_input["fit_frames"] == m.n_frames
 
 
 def test_harmonics_at_or_above_the_nyquist_frequency_are_left_out(tmp_path, blind_file):
