@@ -278,6 +278,11 @@ def read_estimates(path) -> EstimateSet:
     for key in ("theta_std", "state_var", "nis", "step_time"):     # (NaN where not defined: allowed)
         if (data[key] < 0).any():
             raise InputError(path, f"values >= 0 expected (or NaN), got {float(np.nanmin(data[key])):.3g}", key)
+    orphan = np.isfinite(data["innovations"]).any(axis=-1) & ~np.isfinite(data["predictions"]).all(axis=-1)
+    if orphan.any():        # an innovation is the measurement minus a prediction: none without the prediction
+        k, p = np.argwhere(orphan)[0]
+        raise InputError(path, f"frame {k}, point {p}: an innovation where the prediction is NaN (innovations are "
+                               "measurement minus prediction)", "innovations")
     M = data["phi_mean"].shape[1] if "phi_mean" in data else 0
     est = _meta_str_list(meta, "estimated", path, M if "phi_mean" in data else None)
     from .params import NAMES

@@ -169,7 +169,18 @@ def test_estimate_file_with_bad_times_or_negative_counts_is_refused(tmp_path, kf
     for key, edit in (("times", lambda a: a[::-1].copy()), ("nis_dof", lambda a: a - 10 ** 6),
                       ("truncation_events", lambda a: a - 1), ("theta_std", lambda a: -a - 1),
                       ("step_time", lambda a: a - 10.0), ("nis", lambda a: np.where(np.isnan(a), a, -1.0)),
-                      ("state_var", lambda a: -a - 1)):
+                      ("state_var", lambda a: -a - 1),
+                      # a prediction removed where its innovation stays (the audit's edited file: accepted, its
+                      # ratio to hold then over the easier observations)
+                      ("innovations", None)):
+        if edit is None:
+            pred = arrays["predictions"].copy()
+            pred[3, 1] = np.nan
+            bad = dict(arrays, predictions=pred)
+            np.savez(tmp_path / f"bad_{key}.npz", **bad)
+            with pytest.raises(InputError, match="frame 3, point 1: an innovation where the prediction is NaN"):
+                read_estimates(tmp_path / f"bad_{key}.npz")
+            continue
         bad = dict(arrays, **{key: edit(arrays[key])})
         np.savez(tmp_path / f"bad_{key}.npz", **bad)
         with pytest.raises(InputError) as exc:
