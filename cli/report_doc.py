@@ -209,8 +209,12 @@ def _rate_windows(doc) -> list:
     """One line on the tracks' own heart rate in windows (report --measurements) and each run's agreement with it."""
     tracks = doc.get("tracks") or {}
     hw = tracks.get("heart_rate_windows")
-    if not hw or not hw.get("windows"):
+    if not hw:
         return []
+    if not hw.get("windows"):       # a recording shorter than one window: the runs' rate goes unchecked; say so
+        return [f"The recording ({doc['sequence']['duration_s']:.3g} s) is shorter than the {hw['window_s']:g}-s "
+                "windows in which the tracks' own heart rate is measured: the runs' heart rate is not checked "
+                "against it here."]
     rated = [60 * w["frequency_hz"] for w in hw["windows"] if w.get("frequency_hz") is not None]
     line = (f"The tracks' own heart rate in {hw['window_s']:g}-s windows every {hw['step_s']:g} s (heartcv fit's "
             "estimator on the measurements, no model): ")

@@ -404,3 +404,16 @@ def test_the_rig_check_of_measure_is_reported(run, tmp_path):
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout)["rig_check"] is None
     assert "Rig checked" not in (tmp_path / "rep0" / "summary.md").read_text()
+
+
+def test_a_recording_shorter_than_the_rate_windows_says_its_rate_goes_unchecked():
+    """The tracks' own heart rate is measured in 6-s windows: a 3-s recording has none, and the report said nothing
+    (the audit's first 75 in-vivo frames); now one line says the runs' rate is not checked. No windows key (no run
+    used a heart rate): nothing."""
+    from heartcv.cli.report_doc import _rate_windows
+
+    doc = {"sequence": {"duration_s": 2.96},
+           "tracks": {"heart_rate_windows": {"window_s": 6.0, "step_s": 3.0, "windows": []}}}
+    (line,) = _rate_windows(doc)
+    assert "(2.96 s) is shorter than the 6-s windows" in line and "not checked" in line
+    assert _rate_windows({"sequence": {"duration_s": 2.96}, "tracks": {"heart_rate_windows": None}}) == []
