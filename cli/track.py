@@ -217,7 +217,7 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     meta = {"producer": "heartcv track", "model": str(model_file),
             "inputs_hash": {"measurements": file_hash(measurements), "model": file_hash(model_file)}}
     theta0 = prior_std = None
-    input_block = full_block = None
+    input_block = full_block = refs = None
     if fitted is not None:
         m = _fitted_patch(m, fitted, params_file)
         input_block = _input_block(m, meas, fitted, params_file, measurements)
@@ -234,8 +234,9 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
         if without_input and input_block is None:
             raise BadInput(f"--without-input: {params_file} holds no estimated input (estimated_input; the fit had "
                            "a recorded pressure)")
-        meas_in = meas
-        meas = _with_params(m, meas, fitted, measurements, params_file, model_file, input_block)
+        rig = meas.frame == "rig"
+        meas = _registered(m, meas, fitted, measurements, params_file, model_file)   # the file's set let go
+        meas, refs = _with_params(m, meas, fitted, measurements, input_block, rig)
         if without_input:   # after the references: the same points, offsets and held-out tracks as with the input
             full_block, input_block = input_block, input_block.without_input()
             meta["without_input"] = True
@@ -254,8 +255,8 @@ def track(ctx, measurements, model_file, estimator, nodes, truncation, joseph, p
     if holdout:
         meta.update(holdout=holdout, seed=seed)
         if fitted is not None and meas.meta.get("late_points"):
-            meas, heldout = _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file,
-                                                       model_file, full_block or input_block, meta)
+            meas, heldout = _causal_heldout_references(m, refs, meas, heldout, measurements, meta)
+    refs = None     # it holds the registered set: not needed by the run (a full copy of the covariances)
     left_out = np.setdiff1d(file_ids, np.asarray(meas.point_ids))
     if left_out.size:   # the fit's selection (off the patch, seen once; late held-out tracks without a reference)
         meta["left_out_points"] = [int(i) for i in left_out]
@@ -594,60 +595,77 @@ def _input_block(m, meas, fitted, params_file, measurements):
     return block
 
 
-def _with_params(m, meas, fitted, measurements, params_file, model_file, input_block=None, causal_ids=None):
-    """The measurement set as the fit saw it: the stored registration applied to a rig-frame file, whose
-    birth-frame references are then replaced by the fit's undeformed offsets (``causal_ids``: late points whose
-    references come from their first frames only, :func:`tracker.fit.undeformed_references`; then quiet, a second
-    pass)."""
+def _registered(m, meas, fitted, measurements, params_file, model_file):
+    """The measurement set in the patch frame: the stored registration applied to a rig-frame file (a patch-frame
+    file as it is). The caller lets go of the rig-frame set: the two are not needed at once."""
     from heartcv.tracker.files import InputError
-    from heartcv.tracker.fit import undeformed_references
     from heartcv.tracker.io import file_hash
     from heartcv.tracker.registration import apply_stored_registration
 
-    quiet = causal_ids is not None
     fitted_model = (fitted.meta.get("inputs_hash") or {}).get("model")
-    if not quiet and fitted_model is not None and fitted_model != file_hash(model_file):
+    if fitted_model is not None and fitted_model != file_hash(model_file):
         log.warning("%s was fitted with another model file than %s", params_file, model_file)
     if meas.frame != "rig":
-        if fitted.registration is not None and not quiet:
+        if fitted.registration is not None:
             log.warning("%s holds a registration but %s is in the patch frame: not applied", params_file,
                         measurements)
-        if input_block is None:
-            return meas
-        # an estimated input has no mean (the offsets took it): references from the fit's offsets
-        try:
-            return undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block,
-                                         causal_ids=causal_ids)
-        except InputError as exc:
-            raise exc.in_file(measurements) from None
+        return meas
     if fitted.registration is None:
         raise BadInput(f"{measurements}: rig-frame measurements, but {params_file} holds no registration (it was "
                        "fitted to patch-frame measurements)")
     try:
-        meas = apply_stored_registration(meas, fitted.registration, str(params_file))
+        return apply_stored_registration(meas, fitted.registration, str(params_file))
     except InputError as exc:
         raise exc.in_file(params_file) from None
-    # measured references are birth-frame (deformed) positions: use the fit's undeformed offsets
-    try:
-        meas = undeformed_references(m, meas, fitted.theta, fitted.frames, input_block=input_block,
-                                     causal_ids=causal_ids)
-    except InputError as exc:
-        raise exc.in_file(measurements) from None
-    if quiet:
-        return meas
+
+
+def _with_params(m, meas, fitted, measurements, input_block, rig):
+    """``(meas, references)``: the measurement set as the fit saw it (``meas``: :func:`_registered`'s; ``rig``:
+    registered from a rig-frame file), its references replaced by the fit's undeformed offsets where it holds
+    birth-frame references (a rig-frame file) or where an estimated input has no mean (the offsets took it); and the
+    :class:`tracker.fit.UndeformedReferences` that gave them (None when the references were kept), which
+    :func:`_causal_heldout_references` asks again rather than fitting the window's offsets a second time."""
+    if not rig and input_block is None:
+        return meas, None
+    refs = _references(m, meas, fitted, measurements, input_block)
+    meas = _applied(refs, measurements)
+    if not rig:
+        return meas, refs
     if meas.meta.get("late_points"):
         log.info("%d points born after the fit's %d frames: offsets from their own frames",
                  len(meas.meta["late_points"]), fitted.frames)
     if meas.meta.get("dropped_points"):
         log.info("%d points off the patch or seen in fewer than two frames were left out",
                  len(meas.meta["dropped_points"]))
-    return meas
+    return meas, refs
 
 
-def _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, params_file, model_file,
-                               input_block, meta):
+def _references(m, source, fitted, measurements, input_block):
+    """The fit's undeformed offsets of the patch-frame set ``source`` (:class:`tracker.fit.UndeformedReferences`)."""
+    from heartcv.tracker.files import InputError
+    from heartcv.tracker.fit import UndeformedReferences
+
+    try:
+        return UndeformedReferences(m, source, fitted.theta, fitted.frames, input_block=input_block)
+    except InputError as exc:
+        raise exc.in_file(measurements) from None
+
+
+def _applied(refs, measurements, causal_ids=None):
+    """``refs``'s set (``causal_ids``: late points whose references come from their first frames only,
+    :func:`tracker.fit.undeformed_references`)."""
+    from heartcv.tracker.files import InputError
+
+    try:
+        return refs.apply(causal_ids)
+    except InputError as exc:
+        raise exc.in_file(measurements) from None
+
+
+def _causal_heldout_references(m, refs, meas, heldout, measurements, meta):
     """``(meas, heldout)`` with the held-out tracks born after the fitted frames given references from their first
-    frames only (their later measurements never enter; every other point's reference unchanged). A held-out late
+    frames only (their later measurements never enter; every other point's reference unchanged), by ``refs``, the
+    :class:`tracker.fit.UndeformedReferences` that gave ``meas`` (:func:`_with_params`). A held-out late
     track whose first frames put it off the patch (or on it, where all its frames did not) is left out of the run:
     predicting it from a reference its later measurements made would use them. Records the ids in
     ``meta['heldout_late_references']`` (``left_out``: those left out)."""
@@ -658,8 +676,8 @@ def _causal_heldout_references(m, meas_in, meas, heldout, fitted, measurements, 
     late = np.intersect1d(np.asarray(meas.point_ids)[heldout], np.asarray(meas.meta["late_points"], np.int64))
     if not late.size:
         return meas, heldout
-    again = _with_params(m, meas_in, fitted, measurements, params_file, model_file, input_block,
-                         causal_ids=late)
+    # none: the references were kept (a patch-frame file without an estimated input), as they are for these
+    again = meas if refs is None else _applied(refs, measurements, causal_ids=late)
     chosen = causal_heldout_selection(m, meas, again, heldout, late)
     if chosen is None:
         log.warning("held-out tracks born after the fitted frames keep references from all their frames: from "

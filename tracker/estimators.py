@@ -335,7 +335,6 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
     n_l = prior.mean.size - M
     Hz = np.hstack([np.zeros((H.shape[0], M)), H])
     y_all = meas.positions[:, keep, :].reshape(K, -1)
-    cov_all = meas.covariances[:, keep]
     P_all = meas.n_points
     held_rows = np.zeros(y_all.shape[1], bool)
     if heldout is not None and len(heldout):
@@ -407,7 +406,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             rows = np.isfinite(y_k)                 # the update uses these rows only: R is built for their
             seen = np.flatnonzero(rows.reshape(-1, 3).any(axis=1))     # points (3 rows each), never 3P x 3P
             sub = rows.reshape(-1, 3)[seen].reshape(-1)
-            blocks = cov_all[k][seen]
+            blocks = meas.covariances[k, keep][seen]     # one frame's: no copy of all frames'
             blocks = np.where(np.isfinite(blocks).all(axis=(1, 2))[:, None, None], blocks, np.eye(3))
             if adapt is not None:
                 blocks = adapt.measurement_scale(k) * blocks

@@ -36,10 +36,10 @@ from .files import InputError
 from .measurements import MeasurementSet
 from .model import PatchModel
 from .params import NAMES, ParameterSpace
-from .tracking import ObservedPoints, frame_interval, locate_points
+from .tracking import ObservedPoints, first_frames, frame_interval, locate_points
 
 __all__ = ["FitProblem", "UnknownInputProblem", "FitResult", "fit", "tracking_prior", "undeformed_references",
-           "causal_heldout_selection", "S_LIMIT", "SINGULAR_RTOL"]
+           "UndeformedReferences", "causal_heldout_selection", "S_LIMIT", "SINGULAR_RTOL"]
 
 log = logging.getLogger(__name__)
 
@@ -111,12 +111,18 @@ class FitProblem:
         self.H_q = Hq.reshape(3 * P, r)  # positions depend on q only
         self.seen = seen[:, use]
         self.y = (y[:, use] - trans[:, None, :])[self.seen]  # (n_obs, 3)
-        cov = meas.covariances[:K, pts.keep][:, use][self.seen]  # (n_obs, 3, 3)
-        L = np.linalg.cholesky(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+        self._frame_idx, self._point_idx = np.nonzero(self.seen)
+        # the seen covariances (n_obs, 3, 3) gathered at once, in the order of the mask, with no copy of the
+        # frames x points array between; symmetrised in place (the numbers of 0.5 * (cov + cov^T))
+        cov = meas.covariances[self._frame_idx, self.keep[self._point_idx]]
+        cov += np.swapaxes(cov, -1, -2)
+        cov *= 0.5
+        L = np.linalg.cholesky(cov)
+        del cov
         eye = np.broadcast_to(np.eye(3), L.shape)
         self.L_inv = np.linalg.solve(L, eye)  # (n_obs, 3, 3)
+        del L
         R_inv = np.swapaxes(self.L_inv, -1, -2) @ self.L_inv
-        self._frame_idx, self._point_idx = np.nonzero(self.seen)
         G = np.zeros((P, 3, 3))
         np.add.at(G, self._point_idx, R_inv)
         self._R_inv = R_inv
@@ -764,15 +770,19 @@ LATE_REFERENCE_FRAMES = 2
 ``causal_ids``): its first two seen, the fewest a reference takes, so its later measurements never enter."""
 
 
-def _subset_points(meas: MeasurementSet, idx) -> MeasurementSet:
-    """The set restricted to the points ``idx`` (indices into its points), every frame."""
-    import dataclasses
-
+def _subset_points(meas: MeasurementSet, idx, frames_x_points: bool = True) -> MeasurementSet:
+    """The set restricted to the points ``idx`` (indices into its points), every frame (one copy of its arrays, not
+    validated again: :meth:`MeasurementSet._derived`). ``frames_x_points`` false: its positions and covariances
+    left as ``meas``'s, for the caller to replace (nothing else may use the set before)."""
     meta = dict(meas.meta)
     for key in ("reference_frame_index", "reference_uv"):
         if key in meta:
             meta[key] = [meta[key][i] for i in idx]
-    return dataclasses.replace(
+    if not frames_x_points:
+        return MeasurementSet._derived(meas, point_ids=meas.point_ids[idx], reference=meas.reference[idx],
+                                       views=meas.views[:, idx], reprojection_rms=meas.reprojection_rms[:, idx],
+                                       meta=meta, check=False)
+    return MeasurementSet._derived(
         meas, point_ids=meas.point_ids[idx], positions=meas.positions[:, idx], covariances=meas.covariances[:, idx],
         reference=meas.reference[idx], views=meas.views[:, idx], reprojection_rms=meas.reprojection_rms[:, idx],
         meta=meta)
@@ -793,15 +803,22 @@ def _observed_motion(model, meas, keep, offsets, theta, kw, field=None) -> tuple
     expectation) and the previous frame's field."""
     from .unknown_input import field_basis
 
-    sub = _subset_points(meas, keep)
-    win = FitProblem(model, sub, None, inputs=kw["inputs"], translation=np.zeros((meas.n_frames, 3)),
+    # the points ``keep`` placed as a set of them alone places them (locate_points reads the references: one frame of
+    # them suffices), their frames x points arrays then taken from ``meas`` itself (no copy of them for a subset)
+    keep = np.asarray(keep)
+    placed = locate_points(model, _subset_points(first_frames(meas, 1), keep))
+    pts = ObservedPoints(keep[placed.keep], placed.observation, keep[placed.dropped])
+    win = FitProblem(model, meas, None, points=pts, inputs=kw["inputs"], translation=np.zeros((meas.n_frames, 3)),
                      centring=kw.get("centring"))
-    r = win.y - np.asarray(offsets)[win.keep][win._point_idx] - win.displacements(np.asarray(theta, float))[win.seen]
+    in_keep = np.zeros(meas.n_points, np.int64)
+    in_keep[keep] = np.arange(keep.size)
+    used = in_keep[win.keep]    # win.keep indexes meas; offsets follow keep
+    r = win.y - np.asarray(offsets)[used][win._point_idx] - win.displacements(np.asarray(theta, float))[win.seen]
     K = meas.n_frames
     degree = 0 if field is None else int(field.field_degree)
     if degree:
         # at the points' offsets, where the estimators evaluate the field (InputBlock.motion_maps of the references)
-        phi = field_basis(np.asarray(offsets)[win.keep], degree, field.field_centre, field.field_axes,
+        phi = field_basis(np.asarray(offsets)[used], degree, field.field_centre, field.field_axes,
                           field.field_scale)[win._point_idx]
     else:
         phi = np.ones((r.shape[0], 1))
@@ -865,66 +882,100 @@ def undeformed_references(model: PatchModel, meas: MeasurementSet, theta, frames
     only (``heartcv track --holdout``'s held-out tracks, whose measurements must not enter after those; every other
     late point keeps all its frames, which predict the rendered scenes' few late points better).
     """
-    import dataclasses
+    return UndeformedReferences(model, meas, theta, frames, relative_model_error, input_block).apply(causal_ids)
 
-    late_kw = {}
-    if input_block is None:
-        prob = FitProblem(model, meas, frames)
-    else:
-        from .unknown_input import known_inputs
 
-        prob = UnknownInputProblem(model, meas, input_block.frequency_hz, input_block.harmonics, input_block.column,
-                                   frames, centred=input_block.centred)
-        late_kw = {"inputs": known_inputs(meas, model, input_block) + input_block.mean_inputs(meas.n_frames),
-                   "translation": input_block.mean_translation(meas.n_frames), "centring": prob.centring}
-    keep = prob.keep
-    offsets = prob.offsets(np.asarray(theta, float), relative_model_error)
-    late = np.zeros(0, np.int64)
-    if prob.frames < meas.n_frames:
-        candidates = np.setdiff1d(locate_points(model, meas).keep, keep)
-        seen = np.isfinite(meas.positions[:, candidates, 0]).sum(axis=0) >= 2
-        candidates = candidates[seen]
-        if candidates.size:
-            sub = _subset_points(meas, candidates)
-            causal = np.isin(sub.point_ids, np.asarray([] if causal_ids is None else causal_ids, np.int64))
-            if causal.any():
-                seen_so_far = np.cumsum(np.isfinite(sub.positions[..., 0]), axis=0)
-                after = (seen_so_far > LATE_REFERENCE_FRAMES) & causal[None, :]
-                pos, cov = sub.positions.copy(), sub.covariances.copy()
-                pos[after], cov[after] = np.nan, np.nan
-                sub = dataclasses.replace(sub, positions=pos, covariances=cov)
-            if late_kw:
+class UndeformedReferences:
+    """:func:`undeformed_references` in two steps: what does not depend on ``causal_ids`` once (the fitted window's
+    offsets, the late points' candidates and, with an ``input_block``, the rigid motion the window's points show),
+    then the set for any ``causal_ids`` (:meth:`apply`, as often as needed: ``heartcv track --holdout`` takes the
+    references of all frames, then its held-out late tracks' causal ones). The parameters are those of
+    :func:`undeformed_references`."""
+
+    def __init__(self, model: PatchModel, meas: MeasurementSet, theta, frames: int | None = None,
+                 relative_model_error: float = REFERENCE_MODEL_ERROR, input_block=None):
+        late_kw = {}
+        if input_block is None:
+            prob = FitProblem(model, meas, frames)
+        else:
+            from .unknown_input import known_inputs
+
+            prob = UnknownInputProblem(model, meas, input_block.frequency_hz, input_block.harmonics,
+                                       input_block.column, frames, centred=input_block.centred)
+            late_kw = {"inputs": known_inputs(meas, model, input_block) + input_block.mean_inputs(meas.n_frames),
+                       "translation": input_block.mean_translation(meas.n_frames), "centring": prob.centring}
+        self.model, self.meas, self.theta, self.input_block = model, meas, theta, input_block
+        self.relative_model_error = relative_model_error
+        self.frames = prob.frames
+        self.keep = prob.keep
+        self.offsets = prob.offsets(np.asarray(theta, float), relative_model_error)
+        self.candidates = np.zeros(0, np.int64)
+        self.coef = None
+        if prob.frames < meas.n_frames:
+            candidates = np.setdiff1d(locate_points(model, meas).keep, self.keep)
+            seen = np.isfinite(meas.positions[:, candidates, 0]).sum(axis=0) >= 2
+            self.candidates = candidates[seen]
+            if self.candidates.size and late_kw:
                 # the rigid motion that the window's points show in each frame: its translation, and for a field
                 # its part beyond the translation at each late point (taken off the late points' positions)
-                late_kw["translation"], coef = _observed_motion(model, meas, keep, offsets, theta, late_kw,
-                                                                input_block)
-                if coef.shape[1]:
-                    from .unknown_input import field_basis
+                late_kw["translation"], self.coef = _observed_motion(model, meas, self.keep, self.offsets, theta,
+                                                                     late_kw, input_block)
+        self.late_kw = late_kw
+        self._last = None   # (keep, the arrays of meas taken at keep) of the last apply
 
-                    # near the offsets being computed: the positions less the translation, over the frames used
-                    lever = np.nanmedian(sub.positions - late_kw["translation"][:, None, :], axis=0)  # (P_late, 3)
-                    phi = field_basis(np.nan_to_num(lever), input_block.field_degree, input_block.field_centre,
-                                      input_block.field_axes, input_block.field_scale)[:, 1:]  # (P_late, n - 1)
-                    sub = dataclasses.replace(sub, positions=sub.positions - np.einsum("pa,kai->kpi", phi, coef))
+    def apply(self, causal_ids=None) -> MeasurementSet:
+        """The measurement set with the undeformed references (``causal_ids``: :func:`undeformed_references`). The
+        frames x points arrays of an earlier result with the same points are shared, not taken again."""
+        model, meas, theta, input_block = self.model, self.meas, self.theta, self.input_block
+        relative_model_error, late_kw, candidates = self.relative_model_error, self.late_kw, self.candidates
+        keep, offsets = self.keep, self.offsets
+        late = np.zeros(0, np.int64)
+        if candidates.size:
+            sub = _subset_points(meas, candidates, frames_x_points=False)
+            causal = np.isin(sub.point_ids, np.asarray([] if causal_ids is None else causal_ids, np.int64))
+            if causal.any():
+                # their frames x points arrays gathered once, C-ordered, and written: the causal points' after
+                # their first frames are unseen
+                pos, cov = np.take(meas.positions, candidates, axis=1), np.take(meas.covariances, candidates, axis=1)
+                seen_so_far = np.cumsum(np.isfinite(pos[..., 0]), axis=0)
+                after = (seen_so_far > LATE_REFERENCE_FRAMES) & causal[None, :]
+                pos[after], cov[after] = np.nan, np.nan
+            else:
+                pos, cov = meas.positions[:, candidates], meas.covariances[:, candidates]
+            sub = MeasurementSet._derived(sub, positions=pos, covariances=cov)
+            if late_kw and self.coef.shape[1]:
+                from .unknown_input import field_basis
+
+                coef = self.coef
+                # near the offsets being computed: the positions less the translation, over the frames used
+                lever = np.nanmedian(sub.positions - late_kw["translation"][:, None, :], axis=0)  # (P_late, 3)
+                phi = field_basis(np.nan_to_num(lever), input_block.field_degree, input_block.field_centre,
+                                  input_block.field_axes, input_block.field_scale)[:, 1:]  # (P_late, n - 1)
+                sub = MeasurementSet._derived(sub, positions=sub.positions - np.einsum("pa,kai->kpi", phi, coef))
             late_prob = FitProblem(model, sub, None, **late_kw)
             late = candidates[late_prob.keep]
             late_off = late_prob.offsets(np.asarray(theta, float), relative_model_error)
             order = np.argsort(np.r_[keep, late], kind="stable")
             keep = np.r_[keep, late][order]
             offsets = np.concatenate([offsets, late_off])[order]
-    meta = dict(meas.meta)
-    if "reference_frame_index" in meta:
-        meta["reference_frame_index"] = [meta["reference_frame_index"][i] for i in keep]
-    meta["reference"] = (f"undeformed: heartcv fit offsets over the first {prob.frames} frames, relative model "
-                         f"error {relative_model_error:g}"
-                         + (f"; {late.size} points born later over all their frames" if late.size else ""))
-    dropped = np.setdiff1d(np.arange(meas.n_points), keep)
-    meta["dropped_points"] = [int(i) for i in np.asarray(meas.point_ids)[dropped]]
-    meta["late_points"] = [int(i) for i in np.asarray(meas.point_ids)[late]]
-    return dataclasses.replace(
-        meas, point_ids=meas.point_ids[keep], positions=meas.positions[:, keep],
-        covariances=meas.covariances[:, keep], reference=offsets, views=meas.views[:, keep],
-        reprojection_rms=meas.reprojection_rms[:, keep], meta=meta)
+        meta = dict(meas.meta)
+        if "reference_frame_index" in meta:
+            meta["reference_frame_index"] = [meta["reference_frame_index"][i] for i in keep]
+        meta["reference"] = (f"undeformed: heartcv fit offsets over the first {self.frames} frames, relative model "
+                             f"error {relative_model_error:g}"
+                             + (f"; {late.size} points born later over all their frames" if late.size else ""))
+        dropped = np.setdiff1d(np.arange(meas.n_points), keep)
+        meta["dropped_points"] = [int(i) for i in np.asarray(meas.point_ids)[dropped]]
+        meta["late_points"] = [int(i) for i in np.asarray(meas.point_ids)[late]]
+        if self._last is not None and np.array_equal(self._last[0], keep):
+            taken = self._last[1]
+        else:
+            taken = {"point_ids": meas.point_ids[keep], "positions": meas.positions[:, keep],
+                     "covariances": meas.covariances[:, keep], "views": meas.views[:, keep],
+                     "reprojection_rms": meas.reprojection_rms[:, keep]}
+        out = MeasurementSet._derived(meas, reference=offsets, meta=meta, **taken)
+        self._last = (keep, {name: getattr(out, name) for name in taken})
+        return out
 
 
 def causal_heldout_selection(model: PatchModel, meas: MeasurementSet, causal: MeasurementSet, heldout, late):

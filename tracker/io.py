@@ -117,6 +117,9 @@ def write_measurements(path, m: MeasurementSet, meta: dict | None = None):
 def read_measurements(path) -> MeasurementSet:
     """Read and validate a measurement file (docs/formats.md §3)."""
     data, meta = read_npz(path, MEASUREMENT_FORMAT, _MEAS_SCHEMA)
+    for a in data.values():     # read for this set alone: frozen in place, the set takes them without a copy
+        if isinstance(a, np.ndarray) and a.base is None:
+            a.flags.writeable = False
     K, P = data["positions"].shape[:2]
     u = data["inputs"]
     if u.ndim == 1:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -27,6 +27,19 @@ def _ro(a, dtype=float):
         return a
     a = np.array(a, dtype=dtype)
     a.setflags(write=False)
+    return a
+
+
+def _adopt(a, dtype=float):
+    """``a`` read-only without a copy (:func:`_ro` for arrays this package just made from a validated set's: a fresh
+    array, or a view of one that nothing can write, is frozen in place, with every array it views; another dtype is
+    converted, a copy). Never for an array that anything else may still write."""
+    if not isinstance(a, np.ndarray) or a.dtype != np.dtype(dtype):
+        return _ro(a, dtype)
+    b = a
+    while isinstance(b, np.ndarray):
+        b.flags.writeable = False
+        b = b.base
     return a
 
 
@@ -148,6 +161,39 @@ class MeasurementSet:
             object.__setattr__(self, name, val)
         object.__setattr__(self, "input_names", names)
         object.__setattr__(self, "input_units", units)
+
+    @classmethod
+    def _derived(cls, base: MeasurementSet, *, check: bool = True, **changes) -> MeasurementSet:
+        """``dataclasses.replace(base, **changes)`` for a set this package derives from a validated ``base`` (a
+        subset of its points or frames, the same points in another frame, other references): neither validated
+        again (``base`` was, on construction; a set read from a file or built through the constructor always is)
+        nor copied (the changed arrays are frozen in place, :func:`_adopt`: fresh arrays, or views of ``base``'s).
+        Only the shapes are checked, against each other (a mistake in the caller, ValueError; ``check`` false: not
+        even they, for a set whose other arrays the caller replaces at once, through this method)."""
+        unknown = set(changes) - {f.name for f in fields(cls)}
+        if unknown:
+            raise TypeError(f"unknown fields {sorted(unknown)}")
+        out = object.__new__(cls)
+        for f in fields(cls):
+            object.__setattr__(out, f.name, changes.get(f.name, getattr(base, f.name)))
+        for name in ("times", "positions", "covariances", "reference", "inputs", "reprojection_rms"):
+            if name in changes:
+                object.__setattr__(out, name, _adopt(changes[name]))
+        for name in ("point_ids", "views"):
+            if name in changes:
+                object.__setattr__(out, name, _adopt(changes[name], np.int64))
+        object.__setattr__(out, "input_names", tuple(out.input_names))
+        object.__setattr__(out, "input_units", tuple(out.input_units))
+        if not check:
+            return out
+        K, P = out.times.size, out.point_ids.size
+        expect = {"times": (K,), "positions": (K, P, 3), "covariances": (K, P, 3, 3), "reference": (P, 3),
+                  "point_ids": (P,), "inputs": (K, len(out.input_names)), "views": (K, P),
+                  "reprojection_rms": (K, P)}
+        for name, shape in expect.items():
+            if getattr(out, name).shape != shape:
+                raise ValueError(f"{name}: shape {shape} expected, got {getattr(out, name).shape}")
+        return out
 
     @property
     def n_frames(self) -> int:

@@ -578,7 +578,7 @@ def to_patch_frame(meas: MeasurementSet, reg: Registration) -> MeasurementSet:
         raise InputError(None, f"none of the {meas.n_points} points lies on the patch", "registration")
     R, t = reg.rotation, reg.translation
     pos = meas.positions[:, keep] @ R.T + t  # NaN stays NaN
-    cov = R @ meas.covariances[:, keep] @ R.T
+    cov = _rotated_covariances(meas.covariances, keep, R)
     meta = dict(meas.meta)
     meta["frame"] = "patch"
     info = reg.info()
@@ -587,9 +587,27 @@ def to_patch_frame(meas: MeasurementSet, reg: Registration) -> MeasurementSet:
     rfi = meta.get("reference_frame_index")
     if rfi is not None:
         meta["reference_frame_index"] = np.asarray(rfi).reshape(-1)[keep].tolist()
-    return MeasurementSet(meas.times, meas.point_ids[keep], pos, cov, meas.reference[keep] @ R.T + t,
-                          meas.inputs, meas.input_names, meas.input_units, "patch", meas.views[:, keep],
-                          meas.reprojection_rms[:, keep], meta)
+    # the same points in another frame (R C R^T of a validated C is one): not validated again
+    return MeasurementSet._derived(meas, point_ids=meas.point_ids[keep], positions=pos, covariances=cov,
+                                   reference=meas.reference[keep] @ R.T + t, frame="patch",
+                                   views=meas.views[:, keep], reprojection_rms=meas.reprojection_rms[:, keep],
+                                   meta=meta)
+
+
+_ROTATE_POINTS = 64
+"""Points whose covariances :func:`_rotated_covariances` rotates at a time."""
+
+
+def _rotated_covariances(cov: np.ndarray, keep: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``R @ cov[:, keep] @ R.T`` (K, P_keep, 3, 3), :data:`_ROTATE_POINTS` points at a time: the result is the
+    only array of its size made (the expression makes three), with the same numbers and the same memory layout
+    (that of ``cov[:, keep]``, which later reductions follow)."""
+    probe = cov[: min(2, cov.shape[0]), keep[:2]]     # the layout numpy gives cov[:, keep]
+    order = np.argsort(probe.strides, kind="stable")[::-1]   # outermost axis first
+    out = np.empty(tuple((cov.shape[0], keep.size, 3, 3)[i] for i in order)).transpose(np.argsort(order))
+    for j in range(0, keep.size, _ROTATE_POINTS):
+        out[:, j:j + _ROTATE_POINTS] = R @ cov[:, keep[j:j + _ROTATE_POINTS]] @ R.T
+    return out
 
 
 # -- registration as the stages use it (heartcv fit, heartcv track --params) --------------------------------

@@ -253,13 +253,12 @@ DRIFT_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 
 
 def first_frames(meas: MeasurementSet, frames: int) -> MeasurementSet:
-    """The set's first ``frames`` frames (every per-frame array cut; points, references and meta kept)."""
-    from dataclasses import replace
-
+    """The set's first ``frames`` frames (every per-frame array cut, views of the set's; points, references and meta
+    kept; not validated again: :meth:`MeasurementSet._derived`)."""
     K = max(1, min(int(frames), meas.n_frames))
-    return replace(meas, times=meas.times[:K], positions=meas.positions[:K], covariances=meas.covariances[:K],
-                   inputs=meas.inputs[:K], views=None if meas.views is None else meas.views[:K],
-                   reprojection_rms=None if meas.reprojection_rms is None else meas.reprojection_rms[:K])
+    return MeasurementSet._derived(meas, times=meas.times[:K], positions=meas.positions[:K],
+                                   covariances=meas.covariances[:K], inputs=meas.inputs[:K], views=meas.views[:K],
+                                   reprojection_rms=meas.reprojection_rms[:K])
 
 
 @dataclass(frozen=True)
