@@ -125,7 +125,8 @@ def _figures(out: Path, study, statistics) -> list:
     k = np.arange(study.steps)
     dt = study.dt
     written = []
-    n_label = f"{study.runs} Monte-Carlo runs"
+    div = [f"{e.upper()} {s.diverged}" for e, s in statistics.items() if s.diverged]
+    n_label = f"{study.runs} Monte-Carlo runs" if not div else f"{study.runs} runs (diverged: {', '.join(div)})"
     for j, name in enumerate(study.estimated):
         series = {e: (s.abs_error_mean[:, j], s.abs_error_var[:, j]) for e, s in statistics.items()
                   if s.runs_used}
@@ -135,23 +136,33 @@ def _figures(out: Path, study, statistics) -> list:
         written.append(f"fig2_{name}.png")
     joint = {e: s for e, s in statistics.items() if s.anees is not None and s.runs_used}
     if joint:
-        bands = {s.anees_band for s in joint.values()}
-        band = bands.pop() if len(bands) == 1 else None  # one band unless divergences changed n
+        band, band_label = _band(joint, "anees_band")
         M = len(study.estimated)
         fig = consistency_figure(k, {e: s.anees for e, s in joint.items()}, band, reference=M, dt=dt,
+                                 band_label=band_label,
                                  ylabel=f"ANEES of the parameters ({M} dof)",
                                  title=f"Parameter consistency (ANEES) over {n_label}")
         save_png(fig, out / "anees.png")
         written.append("anees.png")
     used = {e: s for e, s in statistics.items() if s.runs_used}
-    bands = {s.nis_band for s in used.values()}
-    fig = consistency_figure(k, {e: s.nis_per_dof for e, s in used.items()},
-                             bands.pop() if len(bands) == 1 else None, reference=1.0, dt=dt,
+    band, band_label = _band(used, "nis_band")
+    fig = consistency_figure(k, {e: s.nis_per_dof for e, s in used.items()}, band, band_label=band_label,
+                             reference=1.0, dt=dt,
                              ylabel="mean NIS per degree of freedom",
                              title=f"Measurement consistency (NIS) over {n_label}")
     save_png(fig, out / "nis.png")
     written.append("nis.png")
     return written
+
+
+def _band(stats: dict, key: str):
+    """The 95 % band to shade and its legend label: the common band, or (divergences changed n) the band of
+    the estimator with the fewest runs used, named, rather than none."""
+    bands = {getattr(s, key) for s in stats.values()} - {None}
+    if len(bands) <= 1:
+        return (bands.pop() if bands else None), "95 % χ² band"
+    name, s = min(stats.items(), key=lambda kv: kv[1].runs_used)
+    return getattr(s, key), f"95 % χ² band ({name.upper()}, {s.runs_used} runs)"
 
 
 def _fmt(v, scale=1.0):

@@ -450,7 +450,7 @@ def run_filter(est: Estimator, meas, prior: GaussianState, H, reference, keep, u
             if adapt is not None:
                 adapt.observe(k, predicted, state, res)
         except (_Runaway, FloatingPointError, np.linalg.LinAlgError, sla.LinAlgError) as exc:
-            log.error("%s: the estimate diverged at step %d (%s)", est.name, k, exc)
+            log.warning("%s: the estimate diverged at step %d (%s)", est.name, k, exc)
             raise EstimationDiverged(k, result(k)) from None
         step_time[k] = time.perf_counter() - t0
         predictions[k, keep] = pred_y.reshape(-1, 3)

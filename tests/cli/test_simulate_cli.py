@@ -249,3 +249,16 @@ def test_si_scale_of_the_plot_axes():
     assert si_scale([0.003], "s") == (1e3, "ms")
     assert si_scale([1e7], "1") == (1.0, "1") and si_scale([1050.0], "kg/m^3") == (1.0, "kg/m^3")
     assert si_scale([np.nan], "Pa") == (1.0, "Pa")
+
+
+def test_figures_band_and_title_with_divergences():
+    """With divergences the estimators' n differ: the figures still shade a band (the fewest runs', named)."""
+    from types import SimpleNamespace
+
+    from heartcv.cli.simulate import _band
+
+    a = SimpleNamespace(runs_used=6, anees_band=(1.0, 3.0))
+    b = SimpleNamespace(runs_used=2, anees_band=(0.2, 5.0))
+    assert _band({"ge": a}, "anees_band") == ((1.0, 3.0), "95 % χ² band")
+    assert _band({"ge": a, "ukf": b}, "anees_band") == ((0.2, 5.0), "95 % χ² band (UKF, 2 runs)")
+    assert _band({}, "anees_band") == (None, "95 % χ² band")
