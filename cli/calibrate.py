@@ -71,7 +71,7 @@ MAX_JOBS = 1024
               help="With --packed: the cameras' names, one per view in packing order (left to right, top to bottom, "
                    "the first row's field first).")
 @click.option("--folds", type=Int(0, 100), default=5, show_default=True,
-              help="k of the k-fold check of the uncertainties (0: none).")
+              help="k of the k-fold check of the uncertainties (below 3: none).")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, metavar="DIR",
               help="Write a calibration report (PNGs + index.html) to DIR.")
 @json_opt
