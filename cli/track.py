@@ -775,7 +775,7 @@ def _report(est, estimator, output, as_json, meta=None) -> None:
         "theta_std_final": dict(zip(NAMES, map(finite, est.theta_std[-1]), strict=True)),
         "truncation_events": int(est.truncation_events.sum()),
         "estimated": list(est.meta.get("estimated", [])),
-        "references": est.meta.get("references", "fixed"),
+        "references": None if est.estimator in BASELINES else est.meta.get("references", "fixed"),
         "adaptation": est.meta.get("adaptation"),
         "parameter_overdispersion": est.meta.get("parameter_overdispersion"),
         "heart_rate_hz": dict(est.meta, **(meta or {})).get("heart_rate_hz"),

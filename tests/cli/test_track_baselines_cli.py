@@ -35,6 +35,7 @@ def test_baseline_track_file_and_json(tmp_path, meas_file, name):
     assert e.estimator == name and e.complete and s["steps"] == e.times.size
     assert s["theta_final"]["E"] is None and s["nis_mean"] is None and s["estimated"] == []
     assert s["log_likelihood_per_point"] is None and e.log_likelihood is None
+    assert s["references"] is None      # (--references is refused for a baseline; it said "fixed")
     lib = run_baseline(name, read_measurements(meas_file))
     np.testing.assert_allclose(e.predictions, lib.predictions, rtol=1e-12, equal_nan=True)
     assert s["prediction_rmse_m"] == pytest.approx(lib.prediction_rmse(), rel=1e-12)
