@@ -460,6 +460,8 @@ class _Matcher:
         self.right = cv2.ximgproc.createRightMatcher(self.left)
         self.tol16 = opt.lr_tolerance_px * 16
         self.block = b
+        self.n_good = 0             # consistent disparities returned, over the sequence
+        self.n_clamped = 0          # consistent matches at an end of the range (left out: beyond the range)
 
     def compute(self, ref, other):
         """``(disparity, match column)`` (H, W) on the reference image: the disparity (px, float32) where left-right
@@ -481,7 +483,9 @@ class _Matcher:
         else:
             prim, sec, sgn = -dr.astype(np.int32), dl.astype(np.int32), -1
         lo, hi = self.d_min * 16, self.d_max * 16
-        valid = (prim >= lo) & (prim <= hi)
+        # a disparity at an end of the searched range is SGBM's clamp of a match beyond it (a surface nearer, or
+        # farther, than the range measured on the first pair), not a measurement: invalid (d_min 0 is infinity)
+        valid = ((prim > lo) | (self.d_min == 0)) & (prim >= lo) & (prim < hi)
         xs = np.arange(W, dtype=np.int32)[None, :]
         # the match's column in the partner image (nearest pixel)
         xm = xs - sgn * ((prim + 8) >> 4)
@@ -490,6 +494,9 @@ class _Matcher:
         back = np.take_along_axis(sec, xm, axis=1)                            # |d| of the partner's map at the match
         back_ok = (back >= lo) & (back <= hi)
         good = inside & back_ok & (np.abs(prim - back) <= self.tol16)
+        edge = ((prim == hi) | ((prim == lo) & (self.d_min > 0))) & (np.abs(prim - back) <= self.tol16)
+        self.n_good += int(good.sum())
+        self.n_clamped += int(edge.sum())
         disp = np.where(good, sgn * prim.astype(np.float32) / 16.0, np.nan).astype(np.float32)
         return disp, xm
 
@@ -928,6 +935,11 @@ def dense_sequence(frames, cameras, options: DenseOptions = DenseOptions(), *, r
     run = run_frames(tracker, frames, clock, clock() - t0, drop_repeats)
     if view is not None:
         run = replace(run, result=view.to_full(run.result, options.ref_camera, full_roi))
+    m = tracker.matcher
+    if m is not None and m.n_clamped > 0.001 * max(m.n_good, 1):
+        logger.warning("dense: %.1f %% of the consistent matches lay at an end of the disparity range %d..%d px "
+                       "measured on the first pair (the surface came nearer or went farther than there) and were "
+                       "left out", 100 * m.n_clamped / max(m.n_good + m.n_clamped, 1), *tracker.disparity_range)
     res = run.result
     if res.point_ids.size == 0 or not res.seen.any():
         raise MeasureFailed(f"no surface point could be measured densely (region of interest {int(res.roi.sum())} "

@@ -175,6 +175,21 @@ def test_disparity_range_measured_on_the_first_pair(plane):
     assert lo < d.min() and d.max() < hi and hi - lo < 96
 
 
+def test_disparity_beyond_the_range_is_not_clamped_to_its_end(plane, caplog):
+    """A plane (76..92 px) nearer than the range searched (50..65 px): SGBM clamps its matches to the range's end,
+    65 px (a depth 15-30 % too far); none may be measured there, and a warning says why."""
+    rig = rectified_rig(W, H, F, B)
+    with caplog.at_level("WARNING", logger="heartcv.dense"):
+        try:
+            run = dense_sequence(plane.frames(rig, 2), rig, DenseOptions(disparity_range_px=(50, 60)))
+        except MeasureFailed:
+            run = None
+    if run is not None:
+        d = F * B / run.result.positions[..., 2]
+        assert not (np.abs(d[np.isfinite(d)] - 65) < 0.5).any()
+    assert "end of the disparity range" in caplog.text
+
+
 # -- the rectified pair and the closed form ---------------------------------------------------------------------------
 def test_rectified_rig_is_the_identity():
     rig = rectified_rig(W, H, F, B)
